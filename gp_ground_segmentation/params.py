@@ -1,0 +1,147 @@
+"""Parameters of the ground segmenter: one frozen dataclass, every field documented with units.
+
+Each field carries ``metadata`` with a human description (units included), and a numeric range
+(``min``/``max``, inclusive) so that the ROS node can build ``ParameterDescriptor`` objects and
+validate ``ros2 param set`` without repeating any of it. ``SegmenterParams.validate()`` checks
+the ranges and the cross-field rules; it raises ``ValueError`` naming the offending field.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+
+
+def _param(default, description: str, low=None, high=None):
+    return field(default=default, metadata={'description': description, 'min': low, 'max': high})
+
+
+@dataclass(frozen=True)
+class SegmenterParams:
+    """All tunables of the Gaussian-process ground segmenter.
+
+    Defaults were chosen on the shared real frames (SemanticKITTI, KITTI 00, VLP-16/32, XT32) and
+    on the synthetic sloped scenes together; see README "Choosing the defaults" for the sweeps.
+    """
+
+    # --- radial grid (grid.py) -------------------------------------------------------------
+    num_segments: int = _param(
+        120, 'M: number of angular segments of the radial grid (each 360/M degrees wide)', 8, 1440)
+    num_bins: int = _param(
+        48, 'N: radial bins per segment, spread evenly between that segment\'s own r_min and '
+        'r_max (the paper\'s "divided unevenly" grid)', 4, 512)
+    density_slices: int = _param(
+        4, 'j: vertical slices per bin used for the density-like value rho~ (count/area averaged '
+        'over the slices)', 1, 64)
+    min_slice_height_m: float = _param(
+        0.05, 'floor on the height of one vertical slice (m), so a bin whose points all share one '
+        'z has a finite density', 1e-4, 10.0)
+    noise_spike_m: float = _param(
+        1.0, 'a ground candidate lying more than this (m) below the median of its neighbouring '
+        'candidates (same and adjacent segments) is treated as below-ground reflection noise '
+        'and replaced by the next lowest point of its bin', 0.05, 100.0)
+
+    # --- line extraction (lines.py) ----------------------------------------------------------
+    deming_variance_ratio: float = _param(
+        1.0, 'lambda: ratio var(z error)/var(r error) of the errors-in-variables (Deming) line '
+        'fit (1 = orthogonal regression)', 1e-4, 1e4)
+    line_max_slope: float = _param(
+        0.7, 'zeta_b: a line whose |slope| (dz/dr) would exceed this ends at a critical point; '
+        'lines steeper than this are treated as non-ground structure', 0.01, 100.0)
+    line_max_distance_m: float = _param(
+        0.15, 'delta: perpendicular distance (m) from a new candidate to the current line above '
+        'which the candidate is a critical point', 0.005, 10.0)
+    line_max_gap_m: float = _param(
+        6.0, 'zeta_m: radial gap (m) between successive candidates above which a line ends', 0.1,
+        1000.0)
+    line_max_density_jump: float = _param(
+        8.0, 'a change of rho~ by more than this factor between successive candidates ends a '
+        'line (the paper\'s "smoothness of rho~")', 1.0, 1e6)
+
+    # --- Gaussian process (gp.py) -------------------------------------------------------------
+    slope_floor: float = _param(
+        0.02, 'g_d: slopes below this use log(1/g_d), keeping length scales finite on flat ground',
+        1e-6, 0.9)
+    slope_ceiling: float = _param(
+        0.9, 'slopes are clipped to this (< 1) so log(1/g) stays positive', 0.05, 0.999)
+    density_in_flat_branch: bool = _param(
+        True, 'divide the flat-branch length scale log(1/g_d) by rho~ too, so L is continuous at '
+        'g = g_d (the paper\'s formula omits it there)')
+    min_length_scale_m: float = _param(
+        0.3, 'lower clip of the length scale L_i = a*d_i (m)', 1e-3, 100.0)
+    max_length_scale_m: float = _param(
+        60.0, 'upper clip of the length scale L_i (m)', 0.1, 1e4)
+    sigma_f_init_m: float = _param(0.5, 'initial sigma_f, GP signal std (m)', 1e-3, 100.0)
+    length_scale_gain_init: float = _param(
+        2.0, 'initial a, the gain of L_i = a*d_i (m per unit d)', 1e-3, 1e3)
+    sigma_n_init_m: float = _param(0.05, 'initial sigma_n, GP noise std (m)', 1e-4, 10.0)
+    sigma_f_min_m: float = _param(0.01, 'lower bound of sigma_f during learning (m)', 1e-4, 100.0)
+    sigma_f_max_m: float = _param(20.0, 'upper bound of sigma_f during learning (m)', 1e-3, 1e3)
+    length_scale_gain_min: float = _param(0.05, 'lower bound of a during learning', 1e-4, 1e3)
+    length_scale_gain_max: float = _param(200.0, 'upper bound of a during learning', 1e-3, 1e5)
+    sigma_n_min_m: float = _param(0.005, 'lower bound of sigma_n during learning (m)', 1e-5, 10.0)
+    sigma_n_max_m: float = _param(2.0, 'upper bound of sigma_n during learning (m)', 1e-4, 100.0)
+    optimizer_max_iterations: int = _param(
+        4, 'L-BFGS-B iterations per frame for theta (warm-started from the previous frame); 0 '
+        'freezes theta', 0, 1000)
+    optimizer_first_frame_iterations: int = _param(
+        40, 'L-BFGS-B iterations on the first frame (cold start)', 0, 10000)
+    outlier_residual_m: float = _param(
+        0.4, 'candidates farther than this (m) from the first GP fit are given outlier noise and '
+        'the GP is refit once (robust to obstacle-top candidates)', 0.01, 100.0)
+
+    # --- labelling (segmenter.py) -------------------------------------------------------------
+    ground_threshold_m: float = _param(
+        0.2, 'a point is ground when z - z_hat(r) <= this (m) + std_factor * predictive std',
+        0.0, 10.0)
+    ground_threshold_std_factor: float = _param(
+        1.0, 'multiplier of the GP predictive std added to ground_threshold_m', 0.0, 100.0)
+    max_threshold_m: float = _param(
+        0.5, 'cap (m) on the total ground threshold, however large the predictive std', 0.0, 100.0)
+
+    def validate(self) -> 'SegmenterParams':
+        """Check every range and cross-field rule; raise ValueError naming the field."""
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            low, high = f.metadata.get('min'), f.metadata.get('max')
+            if isinstance(f.default, bool):
+                if not isinstance(value, bool):
+                    raise ValueError(f'{f.name}: expected a bool, got {value!r}')
+                continue
+            if isinstance(f.default, int) and (isinstance(value, bool) or not isinstance(value, int)):
+                raise ValueError(f'{f.name}: expected an integer, got {value!r}')
+            if isinstance(f.default, float) and (isinstance(value, bool)
+                                                 or not isinstance(value, (int, float))):
+                raise ValueError(f'{f.name}: expected a number, got {value!r}')
+            if not math.isfinite(value):
+                raise ValueError(f'{f.name}: must be finite, got {value!r}')
+            if low is not None and value < low or high is not None and value > high:
+                raise ValueError(f'{f.name}: {value!r} is outside [{low}, {high}]')
+        if self.slope_floor >= self.slope_ceiling:
+            raise ValueError('slope_floor: must be below slope_ceiling')
+        if self.min_length_scale_m >= self.max_length_scale_m:
+            raise ValueError('min_length_scale_m: must be below max_length_scale_m')
+        for init, low, high in (('sigma_f_init_m', 'sigma_f_min_m', 'sigma_f_max_m'),
+                                ('length_scale_gain_init', 'length_scale_gain_min',
+                                 'length_scale_gain_max'),
+                                ('sigma_n_init_m', 'sigma_n_min_m', 'sigma_n_max_m')):
+            if not getattr(self, low) < getattr(self, high):
+                raise ValueError(f'{low}: must be below {high}')
+            if not getattr(self, low) <= getattr(self, init) <= getattr(self, high):
+                raise ValueError(f'{init}: {getattr(self, init)} is outside [{low}, {high}]')
+        return self
+
+    def replace(self, **changes) -> 'SegmenterParams':
+        """Return a validated copy with ``changes`` applied (unknown names raise TypeError)."""
+        return dataclasses.replace(self, **changes).validate()
+
+
+def describe_params() -> list[dict]:
+    """One dict per field: name, default, type, description, min, max (for node and docs)."""
+    rows = []
+    for f in dataclasses.fields(SegmenterParams):
+        rows.append({'name': f.name, 'default': f.default, 'type': type(f.default).__name__,
+                     'description': f.metadata['description'], 'min': f.metadata.get('min'),
+                     'max': f.metadata.get('max')})
+    return rows

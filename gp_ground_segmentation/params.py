@@ -29,18 +29,14 @@ class SegmenterParams:
     num_segments: int = _param(
         120, 'M: number of angular segments of the radial grid (each 360/M degrees wide)', 8, 1440)
     num_bins: int = _param(
-        48, 'N: radial bins per segment, spread evenly between that segment\'s own r_min and '
+        32, 'N: radial bins per segment, spread evenly between that segment\'s own r_min and '
         'r_max (the paper\'s "divided unevenly" grid)', 4, 512)
     density_slices: int = _param(
         4, 'j: vertical slices per bin used for the density-like value rho~ (count/area averaged '
         'over the slices)', 1, 64)
-    min_slice_height_m: float = _param(
-        0.05, 'floor on the height of one vertical slice (m), so a bin whose points all share one '
-        'z has a finite density', 1e-4, 10.0)
     noise_spike_m: float = _param(
-        1.0, 'a ground candidate lying more than this (m) below the median of its neighbouring '
-        'candidates (same and adjacent segments) is treated as below-ground reflection noise '
-        'and replaced by the next lowest point of its bin', 0.05, 100.0)
+        1.0, 'a ground candidate whose leave-one-out GP residual is below minus this (m) is '
+        'below-ground reflection noise: it stops training the GP', 0.05, 100.0)
 
     # --- line extraction (lines.py) ----------------------------------------------------------
     deming_variance_ratio: float = _param(
@@ -68,10 +64,11 @@ class SegmenterParams:
     density_in_flat_branch: bool = _param(
         True, 'divide the flat-branch length scale log(1/g_d) by rho~ too, so L is continuous at '
         'g = g_d (the paper\'s formula omits it there)')
-    min_length_scale_m: float = _param(
-        0.3, 'lower clip of the length scale L_i = a*d_i (m)', 1e-3, 100.0)
-    max_length_scale_m: float = _param(
-        60.0, 'upper clip of the length scale L_i (m)', 0.1, 1e4)
+    min_length_factor: float = _param(
+        0.05, 'lower clip of the length-scale factor d_i = log(1/g_i)/rho_i (dimensionless; '
+        'L_i = a*d_i in m)', 1e-4, 100.0)
+    max_length_factor: float = _param(
+        50.0, 'upper clip of the length-scale factor d_i (dimensionless)', 1e-2, 1e5)
     sigma_f_init_m: float = _param(0.5, 'initial sigma_f, GP signal std (m)', 1e-3, 100.0)
     length_scale_gain_init: float = _param(
         2.0, 'initial a, the gain of L_i = a*d_i (m per unit d)', 1e-3, 1e3)
@@ -82,11 +79,12 @@ class SegmenterParams:
     length_scale_gain_max: float = _param(200.0, 'upper bound of a during learning', 1e-3, 1e5)
     sigma_n_min_m: float = _param(0.005, 'lower bound of sigma_n during learning (m)', 1e-5, 10.0)
     sigma_n_max_m: float = _param(2.0, 'upper bound of sigma_n during learning (m)', 1e-4, 100.0)
-    optimizer_max_iterations: int = _param(
-        4, 'L-BFGS-B iterations per frame for theta (warm-started from the previous frame); 0 '
-        'freezes theta', 0, 1000)
-    optimizer_first_frame_iterations: int = _param(
-        40, 'L-BFGS-B iterations on the first frame (cold start)', 0, 10000)
+    optimizer_max_evaluations: int = _param(
+        3, 'cap on marginal-likelihood evaluations (one whole-frame factorisation each) spent '
+        'on learning theta per frame, warm-started from the previous frame; 0 freezes theta',
+        0, 1000)
+    optimizer_first_frame_evaluations: int = _param(
+        40, 'the same cap for the first frame (cold start)', 0, 10000)
     outlier_residual_m: float = _param(
         0.4, 'candidates farther than this (m) from the first GP fit are given outlier noise and '
         'the GP is refit once (robust to obstacle-top candidates)', 0.01, 100.0)
@@ -120,8 +118,8 @@ class SegmenterParams:
                 raise ValueError(f'{f.name}: {value!r} is outside [{low}, {high}]')
         if self.slope_floor >= self.slope_ceiling:
             raise ValueError('slope_floor: must be below slope_ceiling')
-        if self.min_length_scale_m >= self.max_length_scale_m:
-            raise ValueError('min_length_scale_m: must be below max_length_scale_m')
+        if self.min_length_factor >= self.max_length_factor:
+            raise ValueError('min_length_factor: must be below max_length_factor')
         for init, low, high in (('sigma_f_init_m', 'sigma_f_min_m', 'sigma_f_max_m'),
                                 ('length_scale_gain_init', 'length_scale_gain_min',
                                  'length_scale_gain_max'),

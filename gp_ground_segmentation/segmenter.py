@@ -1,6 +1,34 @@
+# SPDX-License-Identifier: Apache-2.0
 """GroundSegmenter: radial grid -> line-segments -> whole-frame GP -> per-point labels.
 
-TEMPORARY STUB: the API below is final; the body is being written (issue 3).
+Pipeline of one frame (stage names are the keys of ``SegmentationResult.timings_ms``):
+
+``grid``     valid points binned into M x N, lowest point per bin = ground candidate, rho~.
+``lines``    Algorithm 1 over each segment's candidates: line-segments, critical points, slopes.
+             Candidates on lines steeper than zeta_b are structure (walls, car fronts), not
+             ground: they do not train the GP (the paper: "large sloped line-segments relate to
+             non-ground structures").
+``gp_fit``   length scales from slope and rho~, robust rejection of outlier candidates, then
+             theta learned on the whole-frame marginal likelihood (warm-started, capped).
+``predict``  GP posterior mean and std of the ground height at every bin centre.
+``label``    ground height of each point by linear interpolation along r between the bin
+             centres of its segment; ground when z - z_hat <= threshold.
+
+Choices where the paper is vague, each a parameter (see params.py):
+
+* Outlier candidates. The lowest point of a bin is not always ground: below-ground reflection
+  noise (points metres under the road) and the tops of obstacles whose ground is occluded
+  (a car roof seen over its bonnet) both become candidates. A candidate whose leave-one-out
+  GP residual is above ``outlier_residual_m`` or below ``-noise_spike_m`` is given a large
+  noise variance (it stops pulling the fit) and the GP is solved again; two passes, so that
+  an outlier pair masking each other in the first pass is caught in the second.
+* "Close to the ground". A point is ground when z - z_hat(r) <= ground_threshold_m +
+  ground_threshold_std_factor * std(r), capped at max_threshold_m: the threshold widens where
+  the GP is unsure (far, sparse, between lines) but never becomes a height cut-off. The test is
+  one-sided, as in the paper: anything below the predicted ground is ground (below-ground noise
+  included -- it is not an obstacle). There is no height or range truncation anywhere.
+* Segments without a single usable candidate (a wall right beside the sensor) predict the
+  prior mean m0 with the prior std sigma_f.
 """
 
 from __future__ import annotations
@@ -11,15 +39,41 @@ from typing import NamedTuple, Optional
 
 import numpy as np
 
+from .gp import FrameGP, length_scale_factors
+from .grid import RadialGrid, build_grid, relative_density
+from .lines import LineSegments, extract_lines
 from .params import SegmenterParams
+
+_OUTLIER_NOISE_VAR = 1e4  # m^2: a rejected candidate's noise variance (std 100 m)
+_ROBUST_PASSES = 2
 
 
 class Hyperparameters(NamedTuple):
     """GP hyperparameters theta shared by all segments of a frame."""
 
     sigma_f: float  # signal std (m)
-    gain: float  # a in L_i = a * d_i
+    gain: float  # a in L_i = a * d_i (m per unit d)
     sigma_n: float  # noise std (m)
+
+
+@dataclass
+class SegmentationDetails:
+    """Intermediate arrays of one frame, for plots and debugging (``segment(details=True)``).
+
+    Per-point arrays are over the *valid* points, in input order; ``valid_index`` maps them
+    back to input rows. (M, N) arrays are indexed [segment, bin].
+    """
+
+    valid_index: np.ndarray  # (P,) input row of each valid point
+    grid: RadialGrid
+    lines: LineSegments
+    training: np.ndarray  # (M, N) bool: candidate trained the GP
+    outliers: np.ndarray  # (M, N) bool: candidate rejected as outlier by the robust pass
+    length_scale: np.ndarray  # (M, N) L_i = a d_i of every candidate (m), NaN if none
+    bin_center_r: np.ndarray  # (M, N) r where the GP was evaluated (m)
+    ground_mean: np.ndarray  # (M, N) posterior mean ground height at bin centres (m)
+    ground_std: np.ndarray  # (M, N) posterior std at bin centres (m)
+    threshold: np.ndarray  # (P,) ground threshold applied to each valid point (m)
 
 
 @dataclass
@@ -28,11 +82,11 @@ class SegmentationResult:
 
     ground_mask: np.ndarray  # bool (N,): valid and ground
     valid_mask: np.ndarray  # bool (N,): finite and not exactly (0, 0, 0)
-    ground_height: np.ndarray  # float64 (N,): predicted ground z at the point's (segment, r); NaN if undefined
+    ground_height: np.ndarray  # float64 (N,): predicted ground z below the point; NaN if invalid
     hyperparameters: Hyperparameters
     timings_ms: dict = field(default_factory=dict)  # stage -> milliseconds, plus 'total'
     stats: dict = field(default_factory=dict)  # counters: candidates, cholesky fallbacks, ...
-    details: Optional[object] = None  # intermediate arrays when segment(..., details=True)
+    details: Optional[SegmentationDetails] = None
 
     @property
     def obstacle_mask(self) -> np.ndarray:
@@ -52,14 +106,36 @@ def valid_points_mask(xyz: np.ndarray) -> np.ndarray:
     return finite & ~origin
 
 
-class GroundSegmenter:
-    """Stateful segmenter: theta is warm-started from one frame to the next."""
+def _fill_along_rows(values: np.ndarray, known: np.ndarray) -> np.ndarray:
+    """Fill unknown entries of each row with the nearest known entry to their left (else right)."""
+    n = values.shape[1]
+    idx = np.where(known, np.arange(n), -1)
+    left = np.maximum.accumulate(idx, axis=1)
+    idx_r = np.where(known, np.arange(n), n)
+    right = np.minimum.accumulate(idx_r[:, ::-1], axis=1)[:, ::-1]
+    pick = np.where(left >= 0, left, right)
+    pick = np.clip(pick, 0, n - 1)
+    return np.take_along_axis(values, pick, axis=1)
 
-    def __init__(self, params: SegmenterParams | None = None):
+
+class GroundSegmenter:
+    """Stateful segmenter: theta is warm-started from one frame to the next.
+
+    >>> seg = GroundSegmenter(SegmenterParams())
+    >>> result = seg.segment(points)          # (N, >=3) float array
+    >>> points[result.ground_mask]            # ground; result.obstacle_mask for the rest
+    """
+
+    def __init__(self, params: SegmenterParams | None = None,
+                 hyperparameters: Hyperparameters | None = None):
         self._params = (params or SegmenterParams()).validate()
-        self._theta = Hyperparameters(self._params.sigma_f_init_m,
-                                      self._params.length_scale_gain_init,
-                                      self._params.sigma_n_init_m)
+        self._frames = 0
+        if hyperparameters is None:
+            p = self._params
+            hyperparameters = Hyperparameters(p.sigma_f_init_m, p.length_scale_gain_init,
+                                              p.sigma_n_init_m)
+        self._theta = self._clip_theta(hyperparameters)
+        self._has_learned = False
 
     @property
     def params(self) -> SegmenterParams:
@@ -67,15 +143,155 @@ class GroundSegmenter:
 
     @property
     def hyperparameters(self) -> Hyperparameters:
+        """Current theta (the one the next frame starts from)."""
         return self._theta
 
+    def set_params(self, params: SegmenterParams) -> None:
+        """Use new parameters from the next frame on; theta is kept (clipped to new bounds)."""
+        self._params = params.validate()
+        self._theta = self._clip_theta(self._theta)
+
+    def reset(self) -> None:
+        """Forget the learned theta: the next frame is a cold start."""
+        p = self._params
+        self._theta = Hyperparameters(p.sigma_f_init_m, p.length_scale_gain_init, p.sigma_n_init_m)
+        self._has_learned = False
+
+    def _bounds(self):
+        p = self._params
+        return [(p.sigma_f_min_m, p.sigma_f_max_m),
+                (p.length_scale_gain_min, p.length_scale_gain_max),
+                (p.sigma_n_min_m, p.sigma_n_max_m)]
+
+    def _clip_theta(self, theta) -> Hyperparameters:
+        lo, hi = zip(*self._bounds())
+        return Hyperparameters(*(float(v) for v in np.clip(np.asarray(theta, float), lo, hi)))
+
+    # ------------------------------------------------------------------------------------
     def segment(self, points: np.ndarray, details: bool = False) -> SegmentationResult:
-        t0 = time.perf_counter()
-        xyz = np.asarray(points)[:, :3].astype(np.float64)
+        """Label every point of one frame as ground or not; see the module docstring."""
+        p = self._params
+        t_start = time.perf_counter()
+        timings = {}
+        stats = {'points': 0, 'valid_points': 0, 'candidates': 0, 'training_candidates': 0,
+                 'outlier_candidates': 0, 'steep_line_candidates': 0, 'lines': 0,
+                 'cholesky_fallbacks': 0, 'optimizer_iterations': 0, 'optimizer_failures': 0,
+                 'log_marginal_likelihood': float('nan')}
+        pts = np.asarray(points)
+        if pts.ndim != 2 or pts.shape[1] < 3:
+            raise ValueError(f'points must be an (N, >=3) array, got shape {pts.shape}')
+        xyz = pts[:, :3].astype(np.float64, copy=False)
+        n_points = xyz.shape[0]
         valid = valid_points_mask(xyz)
-        height = np.full(len(xyz), np.nan)
-        if valid.any():
-            height[valid] = np.median(xyz[valid, 2])
-        ground = valid & (xyz[:, 2] - np.nan_to_num(height) <= 0.2)
-        return SegmentationResult(ground, valid, height, self._theta,
-                                  {'total': (time.perf_counter() - t0) * 1e3})
+        valid_index = np.flatnonzero(valid)
+        stats['points'] = n_points
+        stats['valid_points'] = int(valid_index.size)
+        ground = np.zeros(n_points, dtype=bool)
+        height = np.full(n_points, np.nan)
+        if valid_index.size == 0:
+            timings['total'] = (time.perf_counter() - t_start) * 1e3
+            return SegmentationResult(ground, valid, height, self._theta, timings, stats)
+        xyz_v = xyz[valid_index]
+
+        t = time.perf_counter()
+        grid = build_grid(xyz_v, p.num_segments, p.num_bins, p.density_slices)
+        timings['grid'] = (time.perf_counter() - t) * 1e3
+
+        t = time.perf_counter()
+        lines = extract_lines(grid.candidate_r, grid.candidate_z, grid.density,
+                              variance_ratio=p.deming_variance_ratio, max_slope=p.line_max_slope,
+                              max_distance_m=p.line_max_distance_m, max_gap_m=p.line_max_gap_m,
+                              max_density_jump=p.line_max_density_jump)
+        timings['lines'] = (time.perf_counter() - t) * 1e3
+
+        t = time.perf_counter()
+        has = grid.has_candidate
+        steep = has & (lines.slope > p.line_max_slope)
+        training = has & ~steep
+        stats['candidates'] = int(has.sum())
+        stats['steep_line_candidates'] = int(steep.sum())
+        stats['lines'] = int(lines.line_count.size)
+        density_rel = relative_density(grid.density, grid.candidate_r, training)
+        d = length_scale_factors(lines.slope, density_rel,
+                                 slope_floor=p.slope_floor, slope_ceiling=p.slope_ceiling,
+                                 density_in_flat_branch=p.density_in_flat_branch,
+                                 d_min=p.min_length_factor, d_max=p.max_length_factor)
+        gp = FrameGP(grid.candidate_r, grid.candidate_z, d, training)
+        outliers = np.zeros_like(gp.valid)
+        theta = np.asarray(self._theta, dtype=np.float64)
+
+        def reject_outliers(sol):
+            loo = gp.loo_residuals(sol)
+            new = gp.valid & ~outliers & ((loo > p.outlier_residual_m) | (loo < -p.noise_spike_m))
+            outliers[new] = True
+            gp.extra_noise[new] = _OUTLIER_NOISE_VAR
+            return bool(new.any())
+
+        sol = None
+        if gp.num_points:
+            sol = gp.solve(theta)
+            for _ in range(_ROBUST_PASSES):
+                if not reject_outliers(sol):
+                    break
+                sol = gp.solve(theta)
+            iterations = (p.optimizer_max_evaluations if self._has_learned
+                          else p.optimizer_first_frame_evaluations)
+            new_theta, info = gp.fit(theta, self._bounds(), iterations)
+            stats['optimizer_iterations'] = info['iterations']
+            stats['optimizer_failures'] = int(info['failed'])
+            if iterations > 0 and not info['failed']:
+                self._has_learned = True
+            if not np.allclose(new_theta, theta):
+                theta = new_theta
+                sol = gp.solve(theta)
+            if reject_outliers(sol):
+                sol = gp.solve(theta)
+            stats['log_marginal_likelihood'] = float(sol.lml)
+        self._theta = Hyperparameters(*(float(v) for v in theta))
+        stats['outlier_candidates'] = int(outliers.sum())
+        stats['training_candidates'] = int((gp.valid & ~outliers).sum())
+        stats['cholesky_fallbacks'] = gp.cholesky_fallbacks
+        timings['gp_fit'] = (time.perf_counter() - t) * 1e3
+
+        t = time.perf_counter()
+        m_count, n_bins = grid.num_segments, grid.num_bins
+        centers = grid.bin_centers()
+        mean_full = np.full((m_count, n_bins), gp.mean)
+        std_full = np.full((m_count, n_bins), theta[0])
+        if sol is not None:
+            train_full = np.zeros((m_count, n_bins), dtype=bool)
+            rows = gp.segments[:, None]
+            train_full[rows, gp.columns] = gp.valid & ~outliers
+            d_star = _fill_along_rows(d, train_full)[gp.segments]
+            mean_b, std_b = gp.predict(sol, centers[gp.segments], d_star)
+            mean_full[gp.segments] = mean_b
+            std_full[gp.segments] = std_b
+        timings['predict'] = (time.perf_counter() - t) * 1e3
+
+        t = time.perf_counter()
+        seg, r = grid.point_segment, grid.point_r
+        u = (r - grid.segment_r_min[seg]) / grid.bin_width[seg] - 0.5
+        k0 = np.clip(np.floor(u).astype(np.intp), 0, max(n_bins - 2, 0))
+        k1 = np.minimum(k0 + 1, n_bins - 1)
+        frac = np.clip(u - k0, 0.0, 1.0)
+        z_hat = mean_full[seg, k0] * (1.0 - frac) + mean_full[seg, k1] * frac
+        std = std_full[seg, k0] * (1.0 - frac) + std_full[seg, k1] * frac
+        threshold = np.minimum(p.ground_threshold_m + p.ground_threshold_std_factor * std,
+                               p.max_threshold_m)
+        ground[valid_index] = xyz_v[:, 2] - z_hat <= threshold
+        height[valid_index] = z_hat
+        timings['label'] = (time.perf_counter() - t) * 1e3
+        timings['total'] = (time.perf_counter() - t_start) * 1e3
+        self._frames += 1
+
+        extra = None
+        if details:
+            out_full = np.zeros((m_count, n_bins), dtype=bool)
+            train_full = np.zeros((m_count, n_bins), dtype=bool)
+            if gp.segments.size:
+                out_full[gp.segments[:, None], gp.columns] = outliers
+                train_full[gp.segments[:, None], gp.columns] = gp.valid & ~outliers
+            extra = SegmentationDetails(valid_index, grid, lines, train_full, out_full,
+                                        np.where(has, theta[1] * d, np.nan), centers, mean_full,
+                                        std_full, threshold)
+        return SegmentationResult(ground, valid, height, self._theta, timings, stats, extra)

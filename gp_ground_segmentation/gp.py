@@ -1,0 +1,224 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Whole-frame Gaussian process over the ground candidates of all segments (paper section III-IV).
+
+Kernel (paper eq. 6, Paciorek & Schervish non-stationary squared exponential in 1-D):
+
+    k(r_i, r_j) = sigma_f^2 (L_i^2)^(1/4) (L_j^2)^(1/4) ((L_i^2 + L_j^2) / 2)^(-1/2)
+                  * exp(-(r_i - r_j)^2 / (L_i^2 + L_j^2)),        L_i = a d_i
+
+Length-scale factor d_i (paper eq. 7-8): d_i = log(1/g_i) / rho_i, g = slope of the candidate's
+line-segment and rho the density-like value. Choices where the paper is silent:
+
+* g is clipped to [g_d, g_max] with g_max < 1: g >= 1 (steeper than 45 deg) would give
+  log(1/g) <= 0, a non-positive length scale; one-point lines (no slope) count as flat (g_d).
+* rho is the bin's rho~ relative to the typical rho~ at the same range
+  (``grid.relative_density``), so that ``a`` means the same near and far and for a 16-beam and a
+  128-beam sensor; rho~ > 0 for every bin that holds a candidate, so d is finite.
+* the paper's flat branch (g < g_d) is written without 1/rho; ``density_in_flat_branch`` (default
+  True) keeps 1/rho there too so that L is continuous in g.
+* d is clipped to [d_min, d_max] so that no candidate gets a vanishing or unbounded length scale;
+  with d fixed per frame, L = a d exactly and the prefactor of k is independent of ``a``.
+
+Hyperparameters theta = (sigma_f, a, sigma_n) are shared by all segments and learned by
+maximising J(theta) = sum_m log p(z_m | r_m, theta) (paper eq. 11) with L-BFGS-B on log theta
+within bounds, using the analytic gradient
+
+    dJ/dtheta = 1/2 sum_m tr((alpha alpha^T - A_m^-1) dA_m/dtheta),   A_m = K_m + sigma_n^2 I.
+
+All segments are solved together as one padded (M, n, n) batch (numpy's stacked Cholesky and
+inverse); padded rows are identity rows with z = 0, which add nothing to J or its gradient.
+The GP prior mean is a constant m0 (the frame's median candidate height), so sigma_f describes
+deviations of the ground from a level plane at m0.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import minimize
+
+LOG_2PI = float(np.log(2.0 * np.pi))
+
+
+def length_scale_factors(slope, density_rel, *, slope_floor, slope_ceiling,
+                         density_in_flat_branch=True, d_min=0.05, d_max=50.0):
+    """d_i = log(1/g_i) / rho_i with the guards listed in the module docstring."""
+    g = np.where(np.isfinite(slope), slope, slope_floor)
+    g = np.clip(g, slope_floor, slope_ceiling)
+    rho = np.where(density_rel > 0, density_rel, 1.0)
+    d = np.log(1.0 / g) / rho
+    if not density_in_flat_branch:
+        d = np.where(g <= slope_floor, np.log(1.0 / slope_floor), d)
+    return np.clip(d, d_min, d_max)
+
+
+def paciorek_kernel(r1, l1, r2, l2, sigma_f):
+    """k(r1_i, r2_j) for broadcastable arrays: r1, l1 (..., n, 1) against r2, l2 (..., 1, m)."""
+    s = l1 * l1 + l2 * l2
+    prefactor = np.sqrt(2.0 * l1 * l2 / s)
+    diff = r1 - r2
+    return sigma_f * sigma_f * prefactor * np.exp(-diff * diff / s)
+
+
+@dataclass
+class GPSolution:
+    """Factorisation of A = K + sigma_n^2 I for every segment at one theta."""
+
+    theta: np.ndarray  # (3,) sigma_f, a, sigma_n
+    alpha: np.ndarray  # (S, n) A^-1 (z - m0)
+    a_inv: np.ndarray  # (S, n, n)
+    lml: float  # J(theta)
+    jitter: float  # diagonal jitter that had to be added (m^2), 0 if none
+    kernel: np.ndarray  # (S, n, n) K at theta (padded slots 0)
+
+
+class FrameGP:
+    """Training data of one frame, padded to (S, n) over the segments that have candidates."""
+
+    def __init__(self, r, z, d, mask, mean=None):
+        """r, z, d, mask: (M, N) candidate arrays; mask marks training candidates."""
+        mask = np.asarray(mask, dtype=bool)
+        counts = mask.sum(axis=1)
+        self.segments = np.flatnonzero(counts > 0)  # rows of (M, N) that enter the batch
+        n_max = int(counts.max()) if counts.size else 0
+        self.n_max = n_max
+        s_count = self.segments.size
+        sub = mask[self.segments]
+        # stable order: training candidates of each segment first, in bin order
+        order = np.argsort(~sub, axis=1, kind='stable')[:, :n_max]
+        self.columns = order  # (S, n) bin index of every padded slot
+        self.valid = np.take_along_axis(sub, order, axis=1)
+        take = (lambda a: np.take_along_axis(np.asarray(a, dtype=np.float64)[self.segments],
+                                             order, axis=1))
+        self.mean = float(np.median(np.asarray(z)[mask])) if mean is None and mask.any() else (
+            0.0 if mean is None else float(mean))
+        valid = self.valid
+        self.r = np.where(valid, take(r), 0.0)
+        self.z = np.where(valid, take(z) - self.mean, 0.0)
+        self.d = np.where(valid, take(d), 1.0)
+        self.num_points = int(valid.sum())
+        pair = valid[:, :, None] & valid[:, None, :]
+        self.pair = pair
+        di, dj = self.d[:, :, None], self.d[:, None, :]
+        sd = di * di + dj * dj
+        self.prefactor = np.where(pair, np.sqrt(2.0 * di * dj / sd), 0.0)
+        diff = self.r[:, :, None] - self.r[:, None, :]
+        self.q = np.where(pair, diff * diff / sd, 0.0)  # (r_i - r_j)^2 / (d_i^2 + d_j^2)
+        self.eye = np.broadcast_to(np.eye(n_max, dtype=bool), (s_count, n_max, n_max))
+        self.pad_diag = self.eye & ~pair  # identity rows/cols of padded slots
+        self.cholesky_fallbacks = 0
+        self.extra_noise = np.zeros_like(self.r)
+        self._cache = None
+
+    # -- core linear algebra ---------------------------------------------------------------
+    def kernel(self, theta):
+        """K (S, n, n) at theta, zero on padded slots."""
+        sigma_f, gain, _ = theta
+        return (sigma_f * sigma_f) * self.prefactor * np.exp(-self.q / (gain * gain))
+
+    def solve(self, theta) -> GPSolution:
+        """Factorise A at theta, adding growing diagonal jitter if Cholesky fails.
+
+        ``self.extra_noise`` (S, n) adds a per-candidate noise variance (m^2): the segmenter
+        sets it to a large value on candidates it has rejected as outliers, which removes their
+        pull on the fit without re-padding the batch.
+        """
+        theta = np.asarray(theta, dtype=np.float64)
+        key = (theta.tobytes(), self.extra_noise.tobytes())
+        if self._cache is not None and self._cache[0] == key:
+            return self._cache[1]  # L-BFGS-B re-evaluates its start and end points
+        k = self.kernel(theta)
+        noise = theta[2] ** 2 + self.extra_noise
+        a = k + np.where(self.eye & self.pair, noise[:, :, None], 0.0) + self.pad_diag
+        jitter = 0.0
+        for attempt in range(6):
+            try:
+                chol = np.linalg.cholesky(a if jitter == 0 else a + jitter * self.eye)
+                break
+            except np.linalg.LinAlgError:
+                jitter = max(jitter * 100.0, 1e-8 * theta[0] ** 2 + 1e-10)
+                self.cholesky_fallbacks += 1
+        else:
+            raise np.linalg.LinAlgError('kernel matrix not positive definite even with jitter')
+        if jitter:
+            a = a + jitter * self.eye
+        diag = np.diagonal(chol, axis1=1, axis2=2)
+        logdet = 2.0 * np.log(diag).sum()
+        a_inv = np.linalg.inv(a)
+        alpha = np.einsum('sij,sj->si', a_inv, self.z)
+        lml = -0.5 * (float(np.einsum('si,si->', self.z, alpha)) + logdet
+                      + self.num_points * LOG_2PI)
+        sol = GPSolution(theta, alpha, a_inv, lml, jitter, k)
+        self._cache = (key, sol)
+        return sol
+
+    def lml_and_gradient(self, log_theta):
+        """J and dJ/dlog(theta) (3,), the objective of the hyperparameter search."""
+        theta = np.exp(np.asarray(log_theta, dtype=np.float64))
+        sol = self.solve(theta)
+        k = sol.kernel
+        w = sol.alpha[:, :, None] * sol.alpha[:, None, :] - sol.a_inv
+        w = np.where(self.pair, w, 0.0)
+        wk = w * k
+        grad_sigma_f = float(wk.sum())  # 1/2 tr(W * 2K)
+        grad_gain = float((wk * self.q).sum()) / theta[1] ** 2  # 1/2 tr(W * K * 2q/a^2)
+        grad_sigma_n = float(np.einsum('sii->', w)) * theta[2] ** 2  # 1/2 tr(W * 2 sn^2 I)
+        return sol.lml, np.array([grad_sigma_f, grad_gain, grad_sigma_n])
+
+    # -- learning ------------------------------------------------------------------------
+    def fit(self, theta0, bounds, max_evaluations):
+        """Maximise J from theta0 within bounds ((lo, hi) x 3); returns (theta, info dict).
+
+        The cap is on objective evaluations (each one factorisation of the whole frame), the
+        unit of cost; L-BFGS-B's own iteration count is reported in ``info``.
+        """
+        theta0 = np.clip(np.asarray(theta0, dtype=np.float64), [b[0] for b in bounds],
+                         [b[1] for b in bounds])
+        info = {'iterations': 0, 'evaluations': 0, 'failed': False}
+        if max_evaluations <= 0 or self.num_points == 0:
+            return theta0, info
+
+        def objective(log_theta):
+            info['evaluations'] += 1
+            try:
+                lml, grad = self.lml_and_gradient(log_theta)
+            except np.linalg.LinAlgError:
+                return 1e30, np.zeros(3)
+            if not np.isfinite(lml) or not np.all(np.isfinite(grad)):
+                return 1e30, np.zeros(3)
+            return -lml, -grad
+
+        start_value, _ = objective(np.log(theta0))
+        try:
+            res = minimize(objective, np.log(theta0), jac=True, method='L-BFGS-B',
+                           bounds=np.log(np.asarray(bounds, dtype=np.float64)),
+                           options={'maxfun': int(max_evaluations),
+                                    'maxiter': int(max_evaluations)})
+        except (ValueError, FloatingPointError, np.linalg.LinAlgError):
+            info['failed'] = True
+            return theta0, info
+        info['iterations'] = int(res.nit)
+        if not np.isfinite(res.fun) or res.fun > start_value:
+            info['failed'] = True  # never move to a worse theta: keep the last good one
+            return theta0, info
+        return np.exp(res.x), info
+
+    # -- prediction ----------------------------------------------------------------------
+    def loo_residuals(self, sol: GPSolution) -> np.ndarray:
+        """(S, n) z_i - mean_{-i}: leave-one-out residual alpha_i / [A^-1]_ii (R&W eq. 5.12)."""
+        diag = np.diagonal(sol.a_inv, axis1=1, axis2=2)
+        return np.where(self.valid, sol.alpha / diag, 0.0)
+
+    def predict(self, sol: GPSolution, r_star, d_star):
+        """Posterior mean (absolute z) and std at r_star, d_star (S, k) of the batch segments."""
+        sigma_f, gain, _ = sol.theta
+        l_star = gain * np.asarray(d_star, dtype=np.float64)[:, :, None]
+        l_train = gain * self.d[:, None, :]
+        k_star = paciorek_kernel(np.asarray(r_star, dtype=np.float64)[:, :, None], l_star,
+                                 self.r[:, None, :], l_train, sigma_f)
+        k_star = np.where(self.valid[:, None, :], k_star, 0.0)
+        mean = np.einsum('skn,sn->sk', k_star, sol.alpha) + self.mean
+        reduce = np.einsum('skn,snm,skm->sk', k_star, sol.a_inv, k_star, optimize=True)
+        var = np.maximum(sigma_f * sigma_f - reduce, 0.0)  # clamp round-off negatives
+        return mean, np.sqrt(var)

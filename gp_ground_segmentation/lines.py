@@ -24,6 +24,16 @@ line of a segment accumulates its candidates' moments; the next candidate is a *
 All segments advance in lock-step (one numpy step per bin index, vectorised over the M
 segments), so the cost is N small vector operations, not M*N Python iterations.
 
+Elevated plateaus. A critical point reached by a steep step *up* (chord slope > zeta_b and rise
+> ``step_up_m``, higher than any curb) from the previous candidate is where the ground meets an
+obstacle; the candidates that follow are the obstacle's lowest points (a car roof whose ground
+is occluded) until the sequence comes back down to within ``step_up_m`` of the ground level
+before the step (extrapolated along the slope of the line that ended there), or drops by more
+than ``step_up_m`` from one candidate to the next, or jumps a radial gap > zeta_m (the far edge
+of the obstacle or its occlusion shadow: whatever is seen beyond it, a rising ramp included, is
+taken as ground again). Such candidates are flagged
+``elevated`` and do not train the GP.
+
 Output per candidate: its line id (unique in the frame), whether it starts a line after a
 critical point, and the slope g = |beta| of its final line. One-point lines have no slope: they
 get NaN, which the GP treats as flat (g_d); a line steeper than zeta_b is flagged non-ground.
@@ -47,6 +57,7 @@ class LineSegments:
     line_slope: np.ndarray  # (L,) signed beta of every line (NaN for one-point lines)
     line_count: np.ndarray  # (L,) candidates per line
     line_r_range: np.ndarray  # (L, 2) first and last candidate r of every line (m)
+    elevated: np.ndarray  # (M, N) bool: candidate lies on a plateau entered by a steep step up
 
 
 def deming_fit(s_rr, s_zz, s_rz, mean_r, mean_z, variance_ratio):
@@ -82,7 +93,8 @@ def _fit_from_sums(n, sr, sz, srr, szz, srz, variance_ratio):
 
 def extract_lines(cand_r: np.ndarray, cand_z: np.ndarray, density: np.ndarray, *,
                   variance_ratio: float, max_slope: float, max_distance_m: float,
-                  max_gap_m: float, max_density_jump: float) -> LineSegments:
+                  max_gap_m: float, max_density_jump: float,
+                  step_up_m: float = 0.3) -> LineSegments:
     """Grow line-segments over the candidates (M, N) of every segment; see module docstring.
 
     Sums are taken about each segment's first candidate r/z to keep the moment arithmetic
@@ -102,6 +114,11 @@ def extract_lines(cand_r: np.ndarray, cand_z: np.ndarray, density: np.ndarray, *
     last_z = np.full(m_count, np.nan)
     last_rho = np.full(m_count, np.nan)
     current_line = np.full(m_count, -1, dtype=np.intp)
+    elevated_now = np.zeros(m_count, dtype=bool)
+    base_r = np.zeros(m_count)  # ground r, z and slope just before the step up
+    base_z = np.zeros(m_count)
+    base_slope = np.zeros(m_count)
+    elevated = np.zeros((m_count, n_count), dtype=bool)
     next_line = 0
     line_id = np.full((m_count, n_count), -1, dtype=np.intp)
     is_critical = np.zeros((m_count, n_count), dtype=bool)
@@ -126,6 +143,20 @@ def extract_lines(cand_r: np.ndarray, cand_z: np.ndarray, density: np.ndarray, *
             _, beta_new = _fit_from_sums(*trial, variance_ratio)
             steep = np.abs(beta_new) > max_slope
         critical = has & started & (gap | jump | far | steep)
+        with np.errstate(divide='ignore', invalid='ignore'):
+            rise = z - last_z
+            chord = rise / np.maximum(r - last_r, 1e-6)
+        step_up = has & started & (rise > step_up_m) & (chord > max_slope)
+        step_down = has & started & (rise < -step_up_m)
+        enter = step_up & ~elevated_now
+        line_slope = np.where(n >= 2, beta, 0.0)
+        base_r = np.where(enter, last_r, base_r)
+        base_z = np.where(enter, last_z, base_z)
+        base_slope = np.where(enter, np.nan_to_num(line_slope, posinf=0.0, neginf=0.0), base_slope)
+        back_down = z <= base_z + base_slope * (r - base_r) + step_up_m
+        leave = has & elevated_now & (step_down | back_down | gap)
+        elevated_now = (elevated_now | enter) & ~leave
+        elevated[:, k] = has & elevated_now
         new_line = has & (~started | critical)
         n_new = int(np.count_nonzero(new_line))
         current_line[new_line] = np.arange(next_line, next_line + n_new)
@@ -160,4 +191,4 @@ def extract_lines(cand_r: np.ndarray, cand_z: np.ndarray, density: np.ndarray, *
     slope = np.full((m_count, n_count), np.nan)
     slope[present] = np.abs(beta[ids])
     return LineSegments(line_id, is_critical, slope, intercept, beta, count.astype(np.intp),
-                        np.stack([r_lo, r_hi], axis=1))
+                        np.stack([r_lo, r_hi], axis=1), elevated)

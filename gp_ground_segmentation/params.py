@@ -48,6 +48,10 @@ class SegmenterParams:
     line_max_distance_m: float = _param(
         0.15, 'delta: perpendicular distance (m) from a new candidate to the current line above '
         'which the candidate is a critical point', 0.005, 10.0)
+    plateau_step_m: float = _param(
+        0.3, 'a steep step up higher than this (m) between successive candidates starts an '
+        'elevated plateau (an obstacle top whose ground is occluded), which does not train the '
+        'GP; keep it above curb height', 0.05, 10.0)
     line_max_gap_m: float = _param(
         6.0, 'zeta_m: radial gap (m) between successive candidates above which a line ends', 0.1,
         1000.0)
@@ -88,6 +92,10 @@ class SegmenterParams:
     outlier_residual_m: float = _param(
         0.4, 'candidates farther than this (m) from the first GP fit are given outlier noise and '
         'the GP is refit once (robust to obstacle-top candidates)', 0.01, 100.0)
+
+    anchor_std_m: float = _param(
+        0.3, 'noise std (m) of the shared pseudo-candidate at r = 0 that tells every segment '
+        'the height of the ground under the vehicle', 0.01, 100.0)
 
     # --- labelling (segmenter.py) -------------------------------------------------------------
     ground_threshold_m: float = _param(

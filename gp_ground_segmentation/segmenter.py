@@ -20,15 +20,22 @@ Choices where the paper is vague, each a parameter (see params.py):
   noise (points metres under the road) and the tops of obstacles whose ground is occluded
   (a car roof seen over its bonnet) both become candidates. A candidate whose leave-one-out
   GP residual is above ``outlier_residual_m`` or below ``-noise_spike_m`` is given a large
-  noise variance (it stops pulling the fit) and the GP is solved again; two passes, so that
-  an outlier pair masking each other in the first pass is caught in the second.
+  noise variance (it stops pulling the fit) and the GP is solved again. There are two passes,
+  one before and one after theta is learned, so that an outlier pair masking each other in the
+  first pass is caught in the second.
 * "Close to the ground". A point is ground when z - z_hat(r) <= ground_threshold_m +
   ground_threshold_std_factor * std(r), capped at max_threshold_m: the threshold widens where
   the GP is unsure (far, sparse, between lines) but never becomes a height cut-off. The test is
   one-sided, as in the paper: anything below the predicted ground is ground (below-ground noise
   included -- it is not an obstacle). There is no height or range truncation anywhere.
-* Segments without a single usable candidate (a wall right beside the sensor) predict the
-  prior mean m0 with the prior std sigma_f.
+* The ground under the vehicle. All segments meet at r = 0, where the ground is the one the
+  vehicle stands on (also on a slope). Every segment's GP gets one shared pseudo-candidate at
+  r = 0 with the frame's estimate of that height (the median over segments of their first
+  line extrapolated to r = 0) and noise std ``anchor_std_m``. It ties the segments together,
+  so that a car parked right beside the sensor -- whose roof is the first and only nearby
+  candidate of its segments -- shows up as a step up from the vehicle's own ground and is
+  rejected, instead of becoming the ground. Segments without a single candidate predict that
+  height with the prior std sigma_f.
 """
 
 from __future__ import annotations
@@ -45,7 +52,6 @@ from .lines import LineSegments, extract_lines
 from .params import SegmenterParams
 
 _OUTLIER_NOISE_VAR = 1e4  # m^2: a rejected candidate's noise variance (std 100 m)
-_ROBUST_PASSES = 2
 
 
 class Hyperparameters(NamedTuple):
@@ -104,6 +110,27 @@ def valid_points_mask(xyz: np.ndarray) -> np.ndarray:
     finite = np.isfinite(xyz).all(axis=1)
     origin = (xyz == 0).all(axis=1)
     return finite & ~origin
+
+
+def _ground_under_sensor(grid: RadialGrid, lines: LineSegments, training: np.ndarray) -> float:
+    """Height of the ground under the vehicle (r = 0), shared by all segments (m).
+
+    Every segment starts at the sensor, so all segment GPs meet at r = 0 where the ground is
+    the one the vehicle stands on, on a slope too. Each segment's first line-segment (two or
+    more candidates, not steep) extrapolated to r = 0 gives one estimate; the median over
+    segments is robust to the few whose first line is a car or a wall. Without such lines,
+    the median of the training candidates.
+    """
+    rows = np.flatnonzero(training.any(axis=1))
+    if rows.size == 0:
+        z = grid.candidate_z[np.isfinite(grid.candidate_z)]
+        return float(np.median(z)) if z.size else 0.0
+    first = np.argmax(training[rows], axis=1)
+    ids = lines.line_id[rows, first]
+    usable = (lines.line_count[ids] >= 2) & np.isfinite(lines.intercept[ids])
+    if usable.any():
+        return float(np.median(lines.intercept[ids[usable]]))
+    return float(np.median(grid.candidate_z[training]))
 
 
 def _fill_along_rows(values: np.ndarray, known: np.ndarray) -> np.ndarray:
@@ -201,13 +228,15 @@ class GroundSegmenter:
         lines = extract_lines(grid.candidate_r, grid.candidate_z, grid.density,
                               variance_ratio=p.deming_variance_ratio, max_slope=p.line_max_slope,
                               max_distance_m=p.line_max_distance_m, max_gap_m=p.line_max_gap_m,
-                              max_density_jump=p.line_max_density_jump)
+                              max_density_jump=p.line_max_density_jump,
+                              step_up_m=p.plateau_step_m)
         timings['lines'] = (time.perf_counter() - t) * 1e3
 
         t = time.perf_counter()
         has = grid.has_candidate
         steep = has & (lines.slope > p.line_max_slope)
-        training = has & ~steep
+        training = has & ~steep & ~lines.elevated
+        stats['elevated_candidates'] = int(lines.elevated.sum())
         stats['candidates'] = int(has.sum())
         stats['steep_line_candidates'] = int(steep.sum())
         stats['lines'] = int(lines.line_count.size)
@@ -216,23 +245,33 @@ class GroundSegmenter:
                                  slope_floor=p.slope_floor, slope_ceiling=p.slope_ceiling,
                                  density_in_flat_branch=p.density_in_flat_branch,
                                  d_min=p.min_length_factor, d_max=p.max_length_factor)
-        gp = FrameGP(grid.candidate_r, grid.candidate_z, d, training)
+        m_count, n_bins = grid.num_segments, grid.num_bins
+        anchor_z = _ground_under_sensor(grid, lines, training)
+        stats['anchor_height_m'] = anchor_z
+        # column 0 of every segment is the shared anchor: the ground under the vehicle (r = 0)
+        anchored = has.any(axis=1, keepdims=True)
+        gp = FrameGP(np.concatenate([np.zeros((m_count, 1)), grid.candidate_r], axis=1),
+                     np.concatenate([np.full((m_count, 1), anchor_z), grid.candidate_z], axis=1),
+                     np.concatenate([_fill_along_rows(d, training)[:, :1], d], axis=1),
+                     np.concatenate([anchored, training], axis=1))
+        is_anchor = (gp.columns == 0) & gp.valid
+        gp.extra_noise[is_anchor] = p.anchor_std_m ** 2
         outliers = np.zeros_like(gp.valid)
         theta = np.asarray(self._theta, dtype=np.float64)
 
         def reject_outliers(sol):
             loo = gp.loo_residuals(sol)
-            new = gp.valid & ~outliers & ((loo > p.outlier_residual_m) | (loo < -p.noise_spike_m))
+            new = (gp.valid & ~is_anchor & ~outliers
+                   & ((loo > p.outlier_residual_m) | (loo < -p.noise_spike_m)))
             outliers[new] = True
             gp.extra_noise[new] = _OUTLIER_NOISE_VAR
             return bool(new.any())
 
         sol = None
         if gp.num_points:
+            # robust pass 1 at the warm-started theta, learning, robust pass 2 at the new theta
             sol = gp.solve(theta)
-            for _ in range(_ROBUST_PASSES):
-                if not reject_outliers(sol):
-                    break
+            if reject_outliers(sol):
                 sol = gp.solve(theta)
             iterations = (p.optimizer_max_evaluations if self._has_learned
                           else p.optimizer_first_frame_evaluations)
@@ -248,20 +287,22 @@ class GroundSegmenter:
                 sol = gp.solve(theta)
             stats['log_marginal_likelihood'] = float(sol.lml)
         self._theta = Hyperparameters(*(float(v) for v in theta))
-        stats['outlier_candidates'] = int(outliers.sum())
-        stats['training_candidates'] = int((gp.valid & ~outliers).sum())
+        # back from the GP's padded (S, n) slots to the grid's (M, N) bins
+        train_full = np.zeros((m_count, n_bins + 1), dtype=bool)
+        out_full = np.zeros((m_count, n_bins + 1), dtype=bool)
+        train_full[gp.segments[:, None], gp.columns] = gp.valid & ~outliers
+        out_full[gp.segments[:, None], gp.columns] = outliers
+        train_full, out_full = train_full[:, 1:], out_full[:, 1:]
+        stats['outlier_candidates'] = int(out_full.sum())
+        stats['training_candidates'] = int(train_full.sum())
         stats['cholesky_fallbacks'] = gp.cholesky_fallbacks
         timings['gp_fit'] = (time.perf_counter() - t) * 1e3
 
         t = time.perf_counter()
-        m_count, n_bins = grid.num_segments, grid.num_bins
         centers = grid.bin_centers()
-        mean_full = np.full((m_count, n_bins), gp.mean)
+        mean_full = np.full((m_count, n_bins), anchor_z)
         std_full = np.full((m_count, n_bins), theta[0])
         if sol is not None:
-            train_full = np.zeros((m_count, n_bins), dtype=bool)
-            rows = gp.segments[:, None]
-            train_full[rows, gp.columns] = gp.valid & ~outliers
             d_star = _fill_along_rows(d, train_full)[gp.segments]
             mean_b, std_b = gp.predict(sol, centers[gp.segments], d_star)
             mean_full[gp.segments] = mean_b
@@ -286,11 +327,6 @@ class GroundSegmenter:
 
         extra = None
         if details:
-            out_full = np.zeros((m_count, n_bins), dtype=bool)
-            train_full = np.zeros((m_count, n_bins), dtype=bool)
-            if gp.segments.size:
-                out_full[gp.segments[:, None], gp.columns] = outliers
-                train_full[gp.segments[:, None], gp.columns] = gp.valid & ~outliers
             extra = SegmentationDetails(valid_index, grid, lines, train_full, out_full,
                                         np.where(has, theta[1] * d, np.nan), centers, mean_full,
                                         std_full, threshold)

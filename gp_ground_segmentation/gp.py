@@ -41,15 +41,20 @@ from scipy.optimize import minimize
 LOG_2PI = float(np.log(2.0 * np.pi))
 
 
+class _BudgetExhausted(Exception):
+    """Raised inside the objective to stop L-BFGS-B exactly at the evaluation cap."""
+
+
 def length_scale_factors(slope, density_rel, *, slope_floor, slope_ceiling,
                          density_in_flat_branch=True, d_min=0.05, d_max=50.0):
     """d_i = log(1/g_i) / rho_i with the guards listed in the module docstring."""
-    g = np.where(np.isfinite(slope), slope, slope_floor)
-    g = np.clip(g, slope_floor, slope_ceiling)
+    slope = np.asarray(slope, dtype=np.float64)
+    raw = np.where(np.isnan(slope), 0.0, np.abs(slope))  # no slope = flat; +inf = steep
+    g = np.clip(raw, slope_floor, slope_ceiling)
     rho = np.where(density_rel > 0, density_rel, 1.0)
     d = np.log(1.0 / g) / rho
     if not density_in_flat_branch:
-        d = np.where(g <= slope_floor, np.log(1.0 / slope_floor), d)
+        d = np.where(raw < slope_floor, np.log(1.0 / slope_floor), d)
     return np.clip(d, d_min, d_max)
 
 
@@ -158,12 +163,13 @@ class FrameGP:
         theta = np.exp(np.asarray(log_theta, dtype=np.float64))
         sol = self.solve(theta)
         k = sol.kernel
-        w = sol.alpha[:, :, None] * sol.alpha[:, None, :] - sol.a_inv
-        w = np.where(self.pair, w, 0.0)
-        wk = w * k
+        # W = alpha alpha^T - A^-1; K (and so W*K) is zero on padded slots, and the noise
+        # derivative only involves the valid diagonal, so no full-size mask is needed.
+        wk = (sol.alpha[:, :, None] * sol.alpha[:, None, :] - sol.a_inv) * k
         grad_sigma_f = float(wk.sum())  # 1/2 tr(W * 2K)
-        grad_gain = float((wk * self.q).sum()) / theta[1] ** 2  # 1/2 tr(W * K * 2q/a^2)
-        grad_sigma_n = float(np.einsum('sii->', w)) * theta[2] ** 2  # 1/2 tr(W * 2 sn^2 I)
+        grad_gain = float(np.vdot(wk, self.q)) / theta[1] ** 2  # 1/2 tr(W * K * 2q/a^2)
+        w_diag = sol.alpha * sol.alpha - np.diagonal(sol.a_inv, axis1=1, axis2=2)
+        grad_sigma_n = float(w_diag[self.valid].sum()) * theta[2] ** 2  # 1/2 tr(W * 2 sn^2 I)
         return sol.lml, np.array([grad_sigma_f, grad_gain, grad_sigma_n])
 
     # -- learning ------------------------------------------------------------------------
@@ -179,30 +185,39 @@ class FrameGP:
         if max_evaluations <= 0 or self.num_points == 0:
             return theta0, info
 
+        values, points = [], []
+
         def objective(log_theta):
+            if info['evaluations'] >= max_evaluations:
+                raise _BudgetExhausted  # scipy checks maxfun only between iterations
             info['evaluations'] += 1
+            points.append(np.array(log_theta, dtype=np.float64))
             try:
                 lml, grad = self.lml_and_gradient(log_theta)
             except np.linalg.LinAlgError:
-                return 1e30, np.zeros(3)
+                lml, grad = -np.inf, np.zeros(3)
             if not np.isfinite(lml) or not np.all(np.isfinite(grad)):
+                values.append(np.inf)
                 return 1e30, np.zeros(3)
+            values.append(-lml)
             return -lml, -grad
 
-        start_value, _ = objective(np.log(theta0))
         try:
             res = minimize(objective, np.log(theta0), jac=True, method='L-BFGS-B',
                            bounds=np.log(np.asarray(bounds, dtype=np.float64)),
                            options={'maxfun': int(max_evaluations),
                                     'maxiter': int(max_evaluations)})
+            info['iterations'] = int(res.nit)
+        except _BudgetExhausted:
+            pass
         except (ValueError, FloatingPointError, np.linalg.LinAlgError):
             info['failed'] = True
             return theta0, info
-        info['iterations'] = int(res.nit)
-        if not np.isfinite(res.fun) or res.fun > start_value:
-            info['failed'] = True  # never move to a worse theta: keep the last good one
+        if not values or not np.isfinite(min(values)):
+            info['failed'] = True  # never move to a worse or undefined theta: keep the last good one
             return theta0, info
-        return np.exp(res.x), info
+        best = int(np.argmin(values))  # values[0] is theta0: the result is never worse
+        return np.exp(points[best]), info
 
     # -- prediction ----------------------------------------------------------------------
     def loo_residuals(self, sol: GPSolution) -> np.ndarray:

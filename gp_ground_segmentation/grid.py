@@ -56,9 +56,9 @@ class RadialGrid:
         """(M, N) bool: the bin holds at least one point."""
         return self.candidate_index >= 0
 
-    def bin_centers(self) -> np.ndarray:
-        """(M, N) radial position of each bin's centre (m)."""
-        k = np.arange(self.num_bins) + 0.5
+    def bin_edges(self) -> np.ndarray:
+        """(M, N + 1) radial position of each bin's edges (m), from r_min to r_max."""
+        k = np.arange(self.num_bins + 1)
         return self.segment_r_min[:, None] + k[None, :] * self.bin_width[:, None]
 
 

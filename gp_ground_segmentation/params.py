@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Parameters of the ground segmenter: one frozen dataclass, every field documented with units.
 
 Each field carries ``metadata`` with a human description (units included), and a numeric range
@@ -72,15 +73,15 @@ class SegmenterParams:
         0.05, 'lower clip of the length-scale factor d_i = log(1/g_i)/rho_i (dimensionless; '
         'L_i = a*d_i in m)', 1e-4, 100.0)
     max_length_factor: float = _param(
-        50.0, 'upper clip of the length-scale factor d_i (dimensionless)', 1e-2, 1e5)
+        3.0, 'upper clip of the length-scale factor d_i (dimensionless)', 1e-2, 1e5)
     sigma_f_init_m: float = _param(0.5, 'initial sigma_f, GP signal std (m)', 1e-3, 100.0)
     length_scale_gain_init: float = _param(
         2.0, 'initial a, the gain of L_i = a*d_i (m per unit d)', 1e-3, 1e3)
     sigma_n_init_m: float = _param(0.05, 'initial sigma_n, GP noise std (m)', 1e-4, 10.0)
     sigma_f_min_m: float = _param(0.01, 'lower bound of sigma_f during learning (m)', 1e-4, 100.0)
     sigma_f_max_m: float = _param(20.0, 'upper bound of sigma_f during learning (m)', 1e-3, 1e3)
-    length_scale_gain_min: float = _param(0.05, 'lower bound of a during learning', 1e-4, 1e3)
-    length_scale_gain_max: float = _param(200.0, 'upper bound of a during learning', 1e-3, 1e5)
+    length_scale_gain_min: float = _param(0.05, 'lower bound of a during learning (m per unit d)', 1e-4, 1e3)
+    length_scale_gain_max: float = _param(5.0, 'upper bound of a during learning (m per unit d)', 1e-3, 1e5)
     sigma_n_min_m: float = _param(0.005, 'lower bound of sigma_n during learning (m)', 1e-5, 10.0)
     sigma_n_max_m: float = _param(2.0, 'upper bound of sigma_n during learning (m)', 1e-4, 100.0)
     optimizer_max_evaluations: int = _param(
@@ -90,8 +91,9 @@ class SegmenterParams:
     optimizer_first_frame_evaluations: int = _param(
         40, 'the same cap for the first frame (cold start)', 0, 10000)
     outlier_residual_m: float = _param(
-        0.4, 'candidates farther than this (m) from the first GP fit are given outlier noise and '
-        'the GP is refit once (robust to obstacle-top candidates)', 0.01, 100.0)
+        0.8, 'a candidate whose leave-one-out GP residual is above this (m) is an obstacle top, '
+        'not ground: it stops training the GP (checked before and after learning theta)',
+        0.01, 100.0)
 
     anchor_std_m: float = _param(
         0.3, 'noise std (m) of the shared pseudo-candidate at r = 0 that tells every segment '
@@ -102,9 +104,9 @@ class SegmenterParams:
         0.2, 'a point is ground when z - z_hat(r) <= this (m) + std_factor * predictive std',
         0.0, 10.0)
     ground_threshold_std_factor: float = _param(
-        1.0, 'multiplier of the GP predictive std added to ground_threshold_m', 0.0, 100.0)
+        0.0, 'multiplier of the GP predictive std added to ground_threshold_m', 0.0, 100.0)
     max_threshold_m: float = _param(
-        0.5, 'cap (m) on the total ground threshold, however large the predictive std', 0.0, 100.0)
+        0.3, 'cap (m) on the total ground threshold, however large the predictive std', 0.0, 100.0)
 
     def validate(self) -> 'SegmenterParams':
         """Check every range and cross-field rule; raise ValueError naming the field."""

@@ -10,9 +10,10 @@ Pipeline of one frame (stage names are the keys of ``SegmentationResult.timings_
              non-ground structures").
 ``gp_fit``   length scales from slope and rho~, robust rejection of outlier candidates, then
              theta learned on the whole-frame marginal likelihood (warm-started, capped).
-``predict``  GP posterior mean and std of the ground height at every bin centre.
+``predict``  GP posterior mean and std of the ground height at every bin edge (N + 1 per
+             segment: a dense N x n kernel against every raw point would cost 100x more).
 ``label``    ground height of each point by linear interpolation along r between the bin
-             centres of its segment; ground when z - z_hat <= threshold.
+             edges of its segment; ground when z - z_hat <= threshold.
 
 Choices where the paper is vague, each a parameter (see params.py):
 
@@ -76,9 +77,9 @@ class SegmentationDetails:
     training: np.ndarray  # (M, N) bool: candidate trained the GP
     outliers: np.ndarray  # (M, N) bool: candidate rejected as outlier by the robust pass
     length_scale: np.ndarray  # (M, N) L_i = a d_i of every candidate (m), NaN if none
-    bin_center_r: np.ndarray  # (M, N) r where the GP was evaluated (m)
-    ground_mean: np.ndarray  # (M, N) posterior mean ground height at bin centres (m)
-    ground_std: np.ndarray  # (M, N) posterior std at bin centres (m)
+    prediction_r: np.ndarray  # (M, N + 1) r where the GP was evaluated: the bin edges (m)
+    ground_mean: np.ndarray  # (M, N + 1) posterior mean ground height there (m)
+    ground_std: np.ndarray  # (M, N + 1) posterior std there (m)
     threshold: np.ndarray  # (P,) ground threshold applied to each valid point (m)
 
 
@@ -299,21 +300,22 @@ class GroundSegmenter:
         timings['gp_fit'] = (time.perf_counter() - t) * 1e3
 
         t = time.perf_counter()
-        centers = grid.bin_centers()
-        mean_full = np.full((m_count, n_bins), anchor_z)
-        std_full = np.full((m_count, n_bins), theta[0])
+        edges = grid.bin_edges()
+        mean_full = np.full((m_count, n_bins + 1), anchor_z)
+        std_full = np.full((m_count, n_bins + 1), theta[0])
         if sol is not None:
-            d_star = _fill_along_rows(d, train_full)[gp.segments]
-            mean_b, std_b = gp.predict(sol, centers[gp.segments], d_star)
+            d_fill = _fill_along_rows(d, train_full)
+            d_star = np.concatenate([d_fill, d_fill[:, -1:]], axis=1)[gp.segments]
+            mean_b, std_b = gp.predict(sol, edges[gp.segments], d_star)
             mean_full[gp.segments] = mean_b
             std_full[gp.segments] = std_b
         timings['predict'] = (time.perf_counter() - t) * 1e3
 
         t = time.perf_counter()
         seg, r = grid.point_segment, grid.point_r
-        u = (r - grid.segment_r_min[seg]) / grid.bin_width[seg] - 0.5
-        k0 = np.clip(np.floor(u).astype(np.intp), 0, max(n_bins - 2, 0))
-        k1 = np.minimum(k0 + 1, n_bins - 1)
+        u = (r - grid.segment_r_min[seg]) / grid.bin_width[seg]
+        k0 = np.clip(np.floor(u).astype(np.intp), 0, n_bins - 1)
+        k1 = k0 + 1
         frac = np.clip(u - k0, 0.0, 1.0)
         z_hat = mean_full[seg, k0] * (1.0 - frac) + mean_full[seg, k1] * frac
         std = std_full[seg, k0] * (1.0 - frac) + std_full[seg, k1] * frac
@@ -328,6 +330,6 @@ class GroundSegmenter:
         extra = None
         if details:
             extra = SegmentationDetails(valid_index, grid, lines, train_full, out_full,
-                                        np.where(has, theta[1] * d, np.nan), centers, mean_full,
+                                        np.where(has, theta[1] * d, np.nan), edges, mean_full,
                                         std_full, threshold)
         return SegmentationResult(ground, valid, height, self._theta, timings, stats, extra)

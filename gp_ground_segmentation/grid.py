@@ -42,6 +42,7 @@ class RadialGrid:
     point_r: np.ndarray  # (P,) radial range sqrt(x^2 + y^2) (m)
     point_segment: np.ndarray  # (P,) int segment index
     point_bin: np.ndarray  # (P,) int bin index
+    point_bin_fraction: np.ndarray  # (P,) position inside the bin, 0 at its inner edge, 1 outer
     segment_r_min: np.ndarray  # (M,) r of the first bin's inner edge (m)
     bin_width: np.ndarray  # (M,) radial width of this segment's bins (m), > 0
     count: np.ndarray  # (M, N) points per bin
@@ -70,35 +71,38 @@ def segment_of(x: np.ndarray, y: np.ndarray, num_segments: int) -> np.ndarray:
     return np.clip(seg, 0, num_segments - 1)
 
 
-def build_grid(xyz: np.ndarray, num_segments: int, num_bins: int,
-               density_slices: int = 4) -> RadialGrid:
-    """Bin valid points (P, 3) into the radial grid and pick the lowest point of every bin.
+def build_grid(x: np.ndarray, y: np.ndarray, z: np.ndarray, num_segments: int,
+               num_bins: int, density_slices: int = 4) -> RadialGrid:
+    """Bin valid points (P,) x, y, z into the radial grid and pick the lowest point of every bin.
 
-    ``xyz`` must hold only valid (finite) points. Per segment the bins span [r_min, r_max] of
-    that segment's points; a segment whose points all share one r gets bins 1 mm wide.
+    The coordinates must be finite (only valid points), float32 or float64. Per segment the
+    bins span [r_min, r_max] of that segment's points; a segment whose points all share one r
+    gets bins 1 mm wide.
     """
     m_count, n_count = int(num_segments), int(num_bins)
-    x, y, z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
     r = np.sqrt(x * x + y * y)
     seg = segment_of(x, y, m_count)
 
-    r_min = np.full(m_count, np.inf)
-    r_max = np.full(m_count, -np.inf)
+    # ufunc.at only takes its fast path when the accumulator has the data's dtype
+    r_min = np.full(m_count, np.inf, dtype=r.dtype)
+    r_max = np.full(m_count, -np.inf, dtype=r.dtype)
     np.minimum.at(r_min, seg, r)
     np.maximum.at(r_max, seg, r)
+    r_min, r_max = r_min.astype(np.float64), r_max.astype(np.float64)
     empty_segment = ~np.isfinite(r_min)
     r_min[empty_segment] = 0.0
     r_max[empty_segment] = 0.0
     width = np.maximum((r_max - r_min) / n_count, 1e-3)
 
-    bins = ((r - r_min[seg]) / width[seg]).astype(np.intp)
-    bins = np.clip(bins, 0, n_count - 1)  # r == r_max falls on the outer edge
+    position = (r - r_min[seg]) / width[seg]
+    bins = np.minimum(position.astype(np.intp), n_count - 1)  # r == r_max: outer edge
+    fraction = np.minimum(position - bins, 1.0)
     key = seg * n_count + bins
 
     size = m_count * n_count
     count = np.bincount(key, minlength=size)
-    z_min = np.full(size, np.inf)
-    z_max = np.full(size, -np.inf)
+    z_min = np.full(size, np.inf, dtype=z.dtype)
+    z_max = np.full(size, -np.inf, dtype=z.dtype)
     np.minimum.at(z_min, key, z)
     np.maximum.at(z_max, key, z)
 
@@ -121,7 +125,8 @@ def build_grid(xyz: np.ndarray, num_segments: int, num_bins: int,
     density = count.reshape(m_count, n_count) / (density_slices * sector_area)
 
     shape = (m_count, n_count)
-    return RadialGrid(m_count, n_count, r, seg, bins, r_min, width, count.reshape(shape),
+    return RadialGrid(m_count, n_count, r, seg, bins, fraction, r_min, width,
+                      count.reshape(shape),
                       candidate_index.reshape(shape), cand_r.reshape(shape),
                       cand_z.reshape(shape), z_max.reshape(shape), density)
 

@@ -85,7 +85,7 @@ class SegmenterParams:
     sigma_n_min_m: float = _param(0.005, 'lower bound of sigma_n during learning (m)', 1e-5, 10.0)
     sigma_n_max_m: float = _param(2.0, 'upper bound of sigma_n during learning (m)', 1e-4, 100.0)
     optimizer_max_evaluations: int = _param(
-        3, 'cap on marginal-likelihood evaluations (one whole-frame factorisation each) spent '
+        2, 'cap on marginal-likelihood evaluations (one whole-frame factorisation each) spent '
         'on learning theta per frame, warm-started from the previous frame; 0 freezes theta',
         0, 1000)
     optimizer_first_frame_evaluations: int = _param(

@@ -208,7 +208,10 @@ class GroundSegmenter:
         pts = np.asarray(points)
         if pts.ndim != 2 or pts.shape[1] < 3:
             raise ValueError(f'points must be an (N, >=3) array, got shape {pts.shape}')
-        xyz = pts[:, :3].astype(np.float64, copy=False)
+        # float32 input (every LiDAR driver) is processed in float32 up to the candidates: the
+        # per-point arithmetic is memory-bound and mm precision is plenty for r and z.
+        work_dtype = pts.dtype if pts.dtype in (np.float32, np.float64) else np.float64
+        xyz = pts[:, :3].astype(work_dtype, copy=False)
         n_points = xyz.shape[0]
         valid = valid_points_mask(xyz)
         valid_index = np.flatnonzero(valid)
@@ -219,10 +222,11 @@ class GroundSegmenter:
         if valid_index.size == 0:
             timings['total'] = (time.perf_counter() - t_start) * 1e3
             return SegmentationResult(ground, valid, height, self._theta, timings, stats)
-        xyz_v = xyz[valid_index]
+        xyz_v = xyz if valid_index.size == n_points else xyz[valid_index]
+        x, y, z = (np.ascontiguousarray(xyz_v[:, i]) for i in range(3))
 
         t = time.perf_counter()
-        grid = build_grid(xyz_v, p.num_segments, p.num_bins, p.density_slices)
+        grid = build_grid(x, y, z, p.num_segments, p.num_bins, p.density_slices)
         timings['grid'] = (time.perf_counter() - t) * 1e3
 
         t = time.perf_counter()
@@ -312,16 +316,21 @@ class GroundSegmenter:
         timings['predict'] = (time.perf_counter() - t) * 1e3
 
         t = time.perf_counter()
-        seg, r = grid.point_segment, grid.point_r
-        u = (r - grid.segment_r_min[seg]) / grid.bin_width[seg]
-        k0 = np.clip(np.floor(u).astype(np.intp), 0, n_bins - 1)
-        k1 = k0 + 1
-        frac = np.clip(u - k0, 0.0, 1.0)
-        z_hat = mean_full[seg, k0] * (1.0 - frac) + mean_full[seg, k1] * frac
-        std = std_full[seg, k0] * (1.0 - frac) + std_full[seg, k1] * frac
-        threshold = np.minimum(p.ground_threshold_m + p.ground_threshold_std_factor * std,
-                               p.max_threshold_m)
-        ground[valid_index] = xyz_v[:, 2] - z_hat <= threshold
+        # linear interpolation between the edges of each point's bin (flat gathers)
+        edge = grid.point_segment * (n_bins + 1) + grid.point_bin
+        frac = grid.point_bin_fraction
+        mean_flat = mean_full.ravel()
+        z0 = mean_flat[edge]
+        z_hat = z0 + (mean_flat[edge + 1] - z0) * frac
+        if p.ground_threshold_std_factor > 0:
+            std_flat = std_full.ravel()
+            s0 = std_flat[edge]
+            std = s0 + (std_flat[edge + 1] - s0) * frac
+            threshold = np.minimum(p.ground_threshold_m + p.ground_threshold_std_factor * std,
+                                   p.max_threshold_m)
+        else:
+            threshold = np.full(z_hat.shape, min(p.ground_threshold_m, p.max_threshold_m))
+        ground[valid_index] = z - z_hat <= threshold
         height[valid_index] = z_hat
         timings['label'] = (time.perf_counter() - t) * 1e3
         timings['total'] = (time.perf_counter() - t_start) * 1e3

@@ -141,7 +141,7 @@ def test_segment_of_exact_pi_and_range():
 def test_build_grid_matches_brute_force(seed, num_segments, num_bins):
     xyz = make_cloud(seed, num_segments)
     slices = 1 + seed % 4
-    g = build_grid(xyz, num_segments, num_bins, slices)
+    g = build_grid(*xyz.T, num_segments, num_bins, slices)
     ref = brute_grid(xyz, num_segments, num_bins, slices)
 
     np.testing.assert_array_equal(g.point_segment, ref['segment'])
@@ -176,7 +176,7 @@ def test_build_grid_matches_brute_force(seed, num_segments, num_bins):
 
 def test_points_at_r_max_and_pi_fall_in_valid_bins():
     xyz = make_cloud(11, 6)
-    g = build_grid(xyz, 6, 5)
+    g = build_grid(*xyz.T, 6, 5)
     assert g.point_bin.min() >= 0 and g.point_bin.max() <= 4
     # the farthest point of every non-empty segment (r == r_max) is in the outer bin
     for m in np.unique(g.point_segment):
@@ -191,7 +191,7 @@ def test_points_at_r_max_and_pi_fall_in_valid_bins():
 
 def test_tied_lowest_points_pick_one_of_them():
     xyz = np.array([[5.0, 0.1, -1.0], [5.1, 0.1, -1.0], [5.05, 0.1, 0.5], [9.0, 0.1, 0.0]])
-    g = build_grid(xyz, 4, 2)
+    g = build_grid(*xyz.T, 4, 2)
     m = segment_of(np.array([5.0]), np.array([0.1]), 4)[0]
     assert g.candidate_index[m, 0] in (0, 1)
     assert g.candidate_z[m, 0] == -1.0
@@ -200,7 +200,7 @@ def test_tied_lowest_points_pick_one_of_them():
 
 def test_single_point_and_empty_segments():
     xyz = np.array([[3.0, 0.5, -1.7]])
-    g = build_grid(xyz, 8, 4)
+    g = build_grid(*xyz.T, 8, 4)
     m = segment_of(xyz[:, 0], xyz[:, 1], 8)[0]
     assert g.count.sum() == 1 and g.count[m, 0] == 1
     assert g.candidate_index[m, 0] == 0
@@ -220,7 +220,7 @@ def test_single_point_and_empty_segments():
 def test_bin_width_is_segment_span_over_n():
     m_count, n_count = 6, 7
     xyz = make_cloud(3, m_count, used_fraction=1.0, points=400)
-    g = build_grid(xyz, m_count, n_count)
+    g = build_grid(*xyz.T, m_count, n_count)
     for m in range(m_count):
         r = g.point_r[g.point_segment == m]
         if r.size < 2:
@@ -245,7 +245,7 @@ def test_bin_width_is_segment_span_over_n():
 def test_density_closed_form_equals_mean_over_slices(slices):
     m_count, n_count = 5, 4
     xyz = make_cloud(20 + slices, m_count, used_fraction=1.0, points=300)
-    g = build_grid(xyz, m_count, n_count, slices)
+    g = build_grid(*xyz.T, m_count, n_count, slices)
     ref = brute_grid(xyz, m_count, n_count, slices)
     inner = g.segment_r_min[:, None] + np.arange(n_count)[None, :] * g.bin_width[:, None]
     outer = inner + g.bin_width[:, None]
@@ -261,7 +261,7 @@ def test_density_sector_area_by_numerical_integration():
     """The sector area used by rho~ equals a Monte-Carlo-free numerical integral of the bin."""
     m_count, n_count = 3, 2
     xyz = np.array([[2.0, 0.1, 0.0], [6.0, 0.2, 0.0], [5.5, 0.15, 1.0]])
-    g = build_grid(xyz, m_count, n_count, 1)
+    g = build_grid(*xyz.T, m_count, n_count, 1)
     m = g.point_segment[0]
     # midpoint rule over a fine polar grid of the outer bin of segment m
     ri = g.segment_r_min[m] + g.bin_width[m]

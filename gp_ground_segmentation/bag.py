@@ -1,0 +1,599 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Offline bag replay: read PointCloud2 frames from a bag (or point files), segment them with the
+node's own pipeline, and write a ROS 2 bag with ``<topic>/ground``, ``<topic>/obstacles`` and
+``/diagnostics``.
+
+Reading and writing use ``rosbags`` (AnyReader: ROS 2 mcap/sqlite3 directories or bare
+``.mcap``/``.db3`` files, ROS 1 ``.bag``; rosbag2 Writer), but messages are (de)serialised with
+``rclpy.serialization`` so the replay runs exactly the message classes and the code path of the
+node (``pipeline.process_cloud``), with the parameters of the node's YAML file
+(``config.load_params_file``). ROS 1 messages are decoded by rosbags and copied into the rclpy
+class.
+
+An output bag is written into a hidden temporary sibling directory and renamed into place only
+after the writer closed cleanly, so an interrupted or failed replay never leaves a bag that looks
+complete. Every expected failure is raised as :class:`BagError` with a one-line message.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import os
+import shutil
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterator, Optional, Sequence
+
+import numpy as np
+
+POINTCLOUD2 = 'sensor_msgs/msg/PointCloud2'
+DIAGNOSTIC_ARRAY = 'diagnostic_msgs/msg/DiagnosticArray'
+DEFAULT_TOPIC = '/velodyne_points'
+DIAGNOSTICS_TOPIC = '/diagnostics'
+POINT_FILE_SUFFIXES = ('.bin', '.pcd')
+SYNTHETIC_PERIOD_NS = 100_000_000  # point files get stamps i * 0.1 s (a 10 Hz spinning LiDAR)
+SYNTHETIC_FRAME_ID = 'velodyne'
+
+
+class BagError(ValueError):
+    """A bag or point-file input/output problem, described in one line."""
+
+
+def _one_line(err: BaseException) -> str:
+    text = ' '.join(str(err).split()) or type(err).__name__
+    return text if len(text) < 300 else text[:297] + '...'
+
+
+def _reader_errors() -> tuple:
+    """Exceptions that mean 'this bag is unreadable'.
+
+    rosbags raises its own errors for bad metadata and magic numbers, but a truncated or
+    corrupted storage file surfaces from deeper down as struct, EOF, index, unicode, sqlite3 or
+    zstd/lz4 errors. Reading a bag has no other failure mode worth a traceback, so everything
+    derived from Exception raised *by the reader* is reported as a corrupt bag (our own code is
+    never inside these try blocks).
+    """
+    return (Exception,)
+
+
+# ---------------------------------------------------------------------------------------------
+# Input
+# ---------------------------------------------------------------------------------------------
+
+@dataclass
+class InputFrame:
+    """One input cloud: its position, bag receive time (ns) and the rclpy PointCloud2."""
+
+    index: int
+    timestamp_ns: int
+    msg: object
+
+
+def is_point_file(path: Path) -> bool:
+    return path.suffix.lower() in POINT_FILE_SUFFIXES
+
+
+def _expand_inputs(inputs: Sequence) -> tuple[str, list[Path]]:
+    """Classify the inputs: ('bag', [path]) or ('files', [sorted point files])."""
+    paths = [Path(p) for p in inputs]
+    if not paths:
+        raise BagError('no input given')
+    for p in paths:
+        if not p.exists():
+            raise BagError(f'{p}: no such file or directory')
+    if len(paths) == 1 and paths[0].is_dir() and not (paths[0] / 'metadata.yaml').exists():
+        files = sorted(f for f in paths[0].iterdir() if f.is_file() and is_point_file(f))
+        if not files:
+            raise BagError(f'{paths[0]}: neither a rosbag2 directory (no metadata.yaml) nor a '
+                           f'directory of .bin/.pcd files')
+        return 'files', files
+    if all(p.is_file() and is_point_file(p) for p in paths):
+        return 'files', paths
+    if any(is_point_file(p) for p in paths):
+        raise BagError('give either one bag or point files (.bin/.pcd), not a mix')
+    if len(paths) > 1 and not all(p.suffix == '.bag' for p in paths):
+        raise BagError('give one ROS 2 bag (several inputs are only allowed for ROS 1 .bag files)')
+    return 'bag', paths
+
+
+def _pointfile_cloud(path: Path, index: int):
+    """A PointCloud2 from a KITTI .bin or a .pcd, stamped i * 0.1 s, frame_id 'velodyne'."""
+    from builtin_interfaces.msg import Time
+    from std_msgs.msg import Header
+
+    from .cloud import make_cloud
+    from .io import read_points_file
+    points = read_points_file(path)
+    points = np.asarray(points)
+    if points.dtype.names is None:
+        # (N, 4) KITTI x, y, z, intensity or (N, 3) x, y, z -> named float32 fields
+        if points.ndim != 2 or points.shape[1] not in (3, 4):
+            raise BagError(f'{path}: expected (N, 3|4) points, got shape {points.shape}')
+        names = ['x', 'y', 'z', 'intensity'][:points.shape[1]]
+        points = np.ascontiguousarray(points, dtype='<f4').view(
+            np.dtype([(n, '<f4') for n in names])).reshape(-1)
+    stamp_ns = index * SYNTHETIC_PERIOD_NS
+    header = Header(stamp=Time(sec=stamp_ns // 1_000_000_000, nanosec=stamp_ns % 1_000_000_000),
+                    frame_id=SYNTHETIC_FRAME_ID)
+    return make_cloud(header, points), stamp_ns
+
+
+class FrameSource:
+    """Iterate the PointCloud2 frames of a bag topic or of a list of point files.
+
+    Use as a context manager. ``count`` is known before iterating (for the progress bar). Opening
+    checks the topic exists, carries PointCloud2 and has messages; problems raise BagError.
+    """
+
+    def __init__(self, inputs: Sequence, topic: Optional[str] = None,
+                 max_frames: Optional[int] = None):
+        self.kind, self.paths = _expand_inputs(inputs)
+        self.requested_topic = topic
+        self.topic = topic or DEFAULT_TOPIC
+        self.max_frames = max_frames
+        self.count = 0
+        self.note = ''  # a remark for the user (e.g. the topic was picked automatically)
+        self._reader = None
+        self._connections = []
+
+    @property
+    def description(self) -> str:
+        if self.kind == 'files':
+            return f'{len(self.paths)} point file(s) starting with {self.paths[0]}'
+        return ', '.join(str(p) for p in self.paths)
+
+    def __enter__(self) -> 'FrameSource':
+        if self.kind == 'files':
+            self.count = len(self.paths)
+        else:
+            self._open_bag()
+        if self.max_frames is not None:
+            self.count = min(self.count, self.max_frames)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        if self._reader is not None:
+            reader, self._reader = self._reader, None
+            try:
+                reader.close()
+            except Exception:  # closing a broken reader must not hide the real error
+                pass
+
+    def _open_bag(self) -> None:
+        from rosbags.highlevel import AnyReader
+        name = self.description
+        try:
+            reader = AnyReader(self.paths)
+            reader.open()
+        except _reader_errors() as err:
+            raise BagError(f'cannot read bag {name} (corrupt, truncated or not a bag): '
+                           f'{_one_line(err)}') from None
+        self._reader = reader
+        topics = {}
+        for c in reader.connections:
+            topics.setdefault(c.topic, set()).add(c.msgtype)
+        if not topics:
+            raise BagError(f'bag {name} is empty: it has no topics')
+        listing = ', '.join(f'{t} [{"|".join(sorted(m))}]' for t, m in sorted(topics.items()))
+        if self.topic not in topics:
+            clouds = [t for t, m in topics.items() if m == {POINTCLOUD2}]
+            if self.requested_topic is None and len(clouds) == 1:
+                self.note = f'topic {DEFAULT_TOPIC} not in the bag; using {clouds[0]}'
+                self.topic = clouds[0]
+            else:
+                raise BagError(f'topic {self.topic} not in bag {name}; its topics: {listing}')
+        types = topics[self.topic]
+        if types != {POINTCLOUD2}:
+            raise BagError(f'topic {self.topic} carries {"|".join(sorted(types))}, not '
+                           f'{POINTCLOUD2}')
+        self._connections = [c for c in reader.connections if c.topic == self.topic]
+        self.count = sum(c.msgcount for c in self._connections)
+        if self.count == 0:
+            raise BagError(f'topic {self.topic} in bag {name} has no messages')
+
+    def __iter__(self) -> Iterator[InputFrame]:
+        if self.kind == 'files':
+            yield from self._iter_files()
+        else:
+            yield from self._iter_bag()
+
+    def _iter_files(self) -> Iterator[InputFrame]:
+        from .io import PointFileError
+        for i, path in enumerate(self.paths[:self.count]):
+            try:
+                msg, stamp = _pointfile_cloud(path, i)
+            except (PointFileError, OSError, ValueError) as err:
+                raise BagError(f'{path}: {_one_line(err)}') from None
+            yield InputFrame(i, stamp, msg)
+
+    def _iter_bag(self) -> Iterator[InputFrame]:
+        from rclpy.serialization import deserialize_message
+        from sensor_msgs.msg import PointCloud2
+        reader = self._reader
+        errors = _reader_errors()
+        it = reader.messages(connections=self._connections)
+        i = 0
+        while i < self.count:
+            try:
+                item = next(it, None)
+                if item is None:
+                    break
+                connection, timestamp, raw = item
+                if reader.is2:
+                    msg = deserialize_message(bytes(raw), PointCloud2)
+                else:  # ROS 1 serialisation: rosbags decodes it, we copy into the rclpy class
+                    msg = _ros1_to_rclpy_cloud(reader.deserialize(raw, connection.msgtype))
+            except errors as err:
+                raise BagError(f'bag {self.description} is corrupt or truncated (message {i} on '
+                               f'{self.topic}): {_one_line(err)}') from None
+            yield InputFrame(i, int(timestamp), msg)
+            i += 1
+        if i < self.count:
+            raise BagError(f'bag {self.description} lists {self.count} message(s) on '
+                           f'{self.topic} but only {i} could be read (truncated?)')
+
+
+def _ros1_to_rclpy_cloud(m):
+    """rclpy PointCloud2 from a rosbags-decoded ROS 1 PointCloud2 (header.seq is dropped)."""
+    import array
+
+    from builtin_interfaces.msg import Time
+    from sensor_msgs.msg import PointCloud2, PointField
+    from std_msgs.msg import Header
+    out = PointCloud2()
+    stamp = Time(sec=int(m.header.stamp.sec), nanosec=int(m.header.stamp.nanosec))
+    out.header = Header(stamp=stamp, frame_id=m.header.frame_id)
+    out.height, out.width = int(m.height), int(m.width)
+    out.fields = [PointField(name=f.name, offset=int(f.offset), datatype=int(f.datatype),
+                             count=int(f.count)) for f in m.fields]
+    out.is_bigendian = bool(m.is_bigendian)
+    out.point_step, out.row_step = int(m.point_step), int(m.row_step)
+    data = array.array('B')
+    data.frombytes(np.ascontiguousarray(m.data, dtype=np.uint8).tobytes())
+    out.data = data  # array.array('B') is stored as is (fast rclpy setter path)
+    out.is_dense = bool(m.is_dense)
+    return out
+
+
+def read_frame(spec: str, topic: Optional[str] = None):
+    """Load one frame for plotting/eval: ``FILE.bin``, ``FILE.pcd`` or ``BAG:INDEX``.
+
+    Returns ``(msg, description)`` with an rclpy PointCloud2.
+    """
+    path, index = Path(spec), None
+    if not path.exists() and ':' in spec:
+        head, tail = spec.rsplit(':', 1)
+        if tail.isdigit():
+            path, index = Path(head), int(tail)
+    if not path.exists():
+        raise BagError(f'{path}: no such file or directory')
+    if path.is_file() and is_point_file(path):
+        from .io import PointFileError
+        try:
+            msg, _ = _pointfile_cloud(path, 0)
+        except (PointFileError, OSError) as err:
+            raise BagError(f'{path}: {_one_line(err)}') from None
+        return msg, str(path)
+    index = 0 if index is None else index
+    with FrameSource([path], topic) as source:
+        if index >= source.count:
+            raise BagError(f'{path} has {source.count} frame(s) on {source.topic}; index {index} '
+                           f'is out of range')
+        for frame in source:
+            if frame.index == index:
+                return frame.msg, f'{path}:{index} ({source.topic})'
+    raise BagError(f'frame {index} could not be read from {path}')  # pragma: no cover
+
+
+# ---------------------------------------------------------------------------------------------
+# Statistics, progress, summary
+# ---------------------------------------------------------------------------------------------
+
+@dataclass
+class ReplaySummary:
+    """Totals and per-stage timing of a replay."""
+
+    frames: int = 0
+    skipped: int = 0
+    skipped_reasons: list = field(default_factory=list)
+    points: int = 0
+    valid: int = 0
+    ground: int = 0
+    obstacles: int = 0
+    invalid: int = 0
+    stage_ms: dict = field(default_factory=dict)  # stage -> list of per-frame ms
+    thetas: list = field(default_factory=list)  # Hyperparameters per frame
+    wall_s: float = 0.0
+    output: str = ''
+    topic: str = ''
+    note: str = ''
+
+    def add_stage(self, name: str, ms: float) -> None:
+        self.stage_ms.setdefault(name, []).append(float(ms))
+
+    def table(self) -> str:
+        """The closing summary as a fixed-width text table."""
+        share = self.ground / self.valid if self.valid else float('nan')
+        fps = self.frames / self.wall_s if self.wall_s > 0 else float('nan')
+        lines = [f'replay summary: {self.output}',
+                 f'  frames        {self.frames} processed, {self.skipped} skipped'
+                 f'  ({fps:.1f} frames/s wall)',
+                 f'  points        {self.points} in, {self.valid} valid, {self.invalid} invalid',
+                 f'  ground share  {share:.3f} of valid points ({self.ground} ground, '
+                 f'{self.obstacles} obstacles)']
+        if self.thetas:
+            th = np.array(self.thetas, dtype=float)
+            names = ('sigma_f [m]', 'gain a', 'sigma_n [m]')
+            rng = ', '.join(f'{n} {th[:, k].min():.4g}..{th[:, k].max():.4g}'
+                            for k, n in enumerate(names))
+            lines.append(f'  theta range   {rng}')
+        if self.stage_ms:
+            lines.append(f'  {"stage":<14}{"p50 ms":>9}{"p95 ms":>9}{"max ms":>9}'
+                         '   (segment = core total; total = decode+segment+encode; '
+                         'frame = total+write)')
+            order = ('decode', 'grid', 'lines', 'gp_fit', 'predict', 'label', 'segment',
+                     'encode', 'total', 'write', 'frame')
+            names = sorted(self.stage_ms, key=lambda k: (order.index(k) if k in order
+                                                         else len(order), k))
+            for name in names:
+                values = self.stage_ms[name]
+                v = np.asarray(values)
+                lines.append(f'  {name:<14}{np.percentile(v, 50):9.2f}'
+                             f'{np.percentile(v, 95):9.2f}{v.max():9.2f}')
+        for reason in self.skipped_reasons[:5]:
+            lines.append(f'  skipped: {reason}')
+        return '\n'.join(lines)
+
+
+class Progress:
+    """A one-line progress bar on stderr (frames, fps, ETA); silent unless stderr is a TTY."""
+
+    def __init__(self, total: int, stream=None, enabled: Optional[bool] = None, width: int = 28):
+        self.stream = stream if stream is not None else sys.stderr
+        self.enabled = (self.stream.isatty() if enabled is None else enabled)
+        self.total, self.width, self.t0, self.done = total, width, time.perf_counter(), 0
+
+    def update(self, done: int) -> None:
+        self.done = done
+        if not self.enabled:
+            return
+        elapsed = time.perf_counter() - self.t0
+        fps = done / elapsed if elapsed > 0 else 0.0
+        frac = done / self.total if self.total else 1.0
+        fill = int(round(frac * self.width))
+        eta = (self.total - done) / fps if fps > 0 else float('nan')
+        eta_txt = f'{int(eta // 60)}:{int(eta % 60):02d}' if math.isfinite(eta) else '?'
+        self.stream.write(f'\r[{"#" * fill}{"." * (self.width - fill)}] {done}/{self.total} '
+                          f'frames  {fps:5.1f} fps  ETA {eta_txt} ')
+        self.stream.flush()
+
+    def close(self) -> None:
+        if self.enabled:
+            self.stream.write('\n')
+            self.stream.flush()
+
+
+# ---------------------------------------------------------------------------------------------
+# Replay
+# ---------------------------------------------------------------------------------------------
+
+def load_params(params_file: Optional[str]):
+    """(SegmenterParams, node params dict) from the node's YAML with the node's own loader
+    (``config.load_params_file``), or the defaults when no file is given."""
+    from .config import load_params_file, node_param_defaults
+    from .params import SegmenterParams
+    if params_file is None:
+        return SegmenterParams(), node_param_defaults()
+    path = Path(params_file)
+    if not path.is_file():
+        raise BagError(f'{path}: parameter file not found')
+    return load_params_file(str(path))
+
+
+def load_segmenter_params(params_file: Optional[str]):
+    """SegmenterParams from the node's YAML (same loader as the node), or the defaults."""
+    return load_params(params_file)[0]
+
+
+def _storage_plugin(storage: str):
+    from rosbags.rosbag2 import StoragePlugin
+    plugins = {'mcap': StoragePlugin.MCAP, 'sqlite3': StoragePlugin.SQLITE3}
+    if storage not in plugins:
+        raise BagError(f'unknown storage {storage!r}; choose mcap or sqlite3')
+    return plugins[storage]
+
+
+def _partial_dir(out: Path) -> Path:
+    return out.parent / f'.{out.name}.partial-{os.getpid()}'
+
+
+def _check_output(out: Path, force: bool, inputs: list[Path]) -> None:
+    resolved = out.resolve()
+    for p in inputs:
+        rp = p.resolve()
+        if rp == resolved or resolved in rp.parents:
+            raise BagError(f'output {out} would overwrite the input {p}')
+    if out.exists() or out.is_symlink():
+        if not force:
+            raise BagError(f'{out} exists; pass --force to overwrite it')
+        if not out.is_dir():
+            raise BagError(f'{out} exists and is not a directory; remove it by hand')
+        if any(out.iterdir()) and not (out / 'metadata.yaml').is_file():
+            # --force replaces a bag, never an arbitrary directory (think of '~' or '.')
+            raise BagError(f'{out} is not a rosbag2 directory (no metadata.yaml); refusing to '
+                           f'overwrite it even with --force')
+
+
+def _move_into_place(tmp: Path, out: Path) -> None:
+    """Replace ``out`` by the finished ``tmp``; the old output goes only once the new one is in."""
+    # rosbag2 names the storage file after its directory: rename it to the final name first
+    meta = tmp / 'metadata.yaml'
+    text = meta.read_text()
+    for f in sorted(tmp.iterdir()):
+        if f.name.startswith(tmp.name):
+            new = f.with_name(out.name + f.name[len(tmp.name):])
+            os.rename(f, new)
+            text = text.replace(f.name, new.name)
+    meta.write_text(text)
+    trash = None
+    if out.exists():
+        trash = out.parent / f'.{out.name}.old-{os.getpid()}'
+        os.rename(out, trash)
+    os.rename(tmp, out)
+    if trash is not None:
+        shutil.rmtree(trash, ignore_errors=True)
+
+
+def replay(inputs: Sequence, out_bag, *, topic: Optional[str] = None,
+           params_file: Optional[str] = None, storage: str = 'mcap', force: bool = False,
+           max_frames: Optional[int] = None, progress: Optional[Progress] = None,
+           log=None) -> ReplaySummary:
+    """Segment every PointCloud2 of ``inputs`` on ``topic`` and write the result bag ``out_bag``.
+
+    ``inputs``: one bag (directory, .mcap, .db3, or ROS 1 .bag files) or point files / a directory
+    of them. Output topics: ``<topic>/ground``, ``<topic>/obstacles`` (input header and all fields
+    kept, points byte for byte) and ``/diagnostics`` (one DiagnosticArray per frame), each written
+    at the input message's bag time. A frame the pipeline rejects (malformed cloud) is skipped,
+    counted and reported with an ERROR diagnostics entry, as the node does. Raises BagError.
+    """
+    from rclpy.serialization import serialize_message
+    from rosbags.rosbag2 import Writer, WriterError
+    from rosbags.typesys import Stores, get_typestore
+
+    from .diagnostics import ProcessingWindow
+    from .segmenter import GroundSegmenter
+
+    out = Path(out_bag)
+    plugin = _storage_plugin(storage)
+    if max_frames is not None and max_frames < 1:
+        raise BagError('--max-frames must be at least 1')
+    seg_params, node_params = load_params(params_file)
+    segmenter = GroundSegmenter(seg_params)
+    window = ProcessingWindow(int(node_params.get('diagnostics_window', 50)))
+    budget_ms = float(node_params.get('processing_budget_ms', 100.0))
+    summary = ReplaySummary(output=str(out))
+    t_start = time.perf_counter()
+    with FrameSource(inputs, topic, max_frames) as source:
+        _check_output(out, force, source.paths)
+        summary.topic, summary.note = source.topic, source.note
+        if log and source.note:
+            log(source.note)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = _partial_dir(out)
+        if tmp.exists():
+            shutil.rmtree(tmp)
+        typestore = get_typestore(Stores.ROS2_JAZZY)
+        progress = progress or Progress(source.count)
+        try:
+            writer = Writer(tmp, version=9, storage_plugin=plugin)
+            with writer:
+                conn_ground = writer.add_connection(f'{source.topic}/ground', POINTCLOUD2,
+                                                    typestore=typestore)
+                conn_obst = writer.add_connection(f'{source.topic}/obstacles', POINTCLOUD2,
+                                                  typestore=typestore)
+                conn_diag = writer.add_connection(DIAGNOSTICS_TOPIC, DIAGNOSTIC_ARRAY,
+                                                  typestore=typestore)
+                conns = (conn_ground, conn_obst, conn_diag)
+                for frame in source:
+                    _replay_frame(frame, segmenter, writer, conns, summary, window, budget_ms,
+                                  serialize_message)
+                    progress.update(frame.index + 1)
+            if summary.frames == 0:
+                raise BagError(f'none of the {summary.skipped} frame(s) could be segmented: '
+                               f'{summary.skipped_reasons[0] if summary.skipped_reasons else ""}')
+            _move_into_place(tmp, out)
+        except WriterError as err:
+            raise BagError(f'cannot write {out}: {_one_line(err)}') from None
+        finally:
+            progress.close()
+            if tmp.exists():
+                shutil.rmtree(tmp, ignore_errors=True)
+    summary.wall_s = time.perf_counter() - t_start
+    return summary
+
+
+def _replay_frame(frame, segmenter, writer, conns, summary, window, budget_ms,
+                  serialize_message) -> None:
+    """Segment one frame, write its two clouds and a DiagnosticArray built like the node's."""
+    from .cloud import CloudFormatError
+    from .diagnostics import diagnostics_array, diagnostics_status
+    from .pipeline import frame_timings, process_cloud
+
+    conn_ground, conn_obst, conn_diag = conns
+    msg = frame.msg
+    frame_id = msg.header.frame_id
+    t0 = time.perf_counter()
+    n_in = int(msg.height) * int(msg.width)
+    bag_time_s = frame.timestamp_ns * 1e-9
+    window.record_received(frame_id, now=bag_time_s)  # input rate in bag time, not wall time
+    try:
+        out = process_cloud(msg, segmenter)
+    except (CloudFormatError, ValueError, RuntimeError) as err:  # the node drops these too
+        text = _one_line(err)
+        window.record_failure(text, isinstance(err, ValueError), frame_id)
+        summary.skipped += 1
+        summary.skipped_reasons.append(f'frame {frame.index}: {text}')
+        out = None
+    t1 = time.perf_counter()
+    if out is not None:
+        window.record_frame(out, frame_id)
+        writer.write(conn_ground, frame.timestamp_ns, serialize_message(out.ground))
+        writer.write(conn_obst, frame.timestamp_ns, serialize_message(out.obstacles))
+    status = diagnostics_status(window, budget_ms=budget_ms, stale_after_s=None, now=bag_time_s,
+                                extra={'source': 'gp-ground-seg replay', 'frame_index':
+                                       frame.index})
+    writer.write(conn_diag, frame.timestamp_ns,
+                 serialize_message(diagnostics_array([status], stamp=msg.header.stamp)))
+    t2 = time.perf_counter()
+    if out is None:
+        return
+    res = out.result
+    n_valid = int(np.count_nonzero(res.valid_mask))
+    n_ground = int(np.count_nonzero(res.ground_mask))
+    summary.frames += 1
+    summary.points += n_in
+    summary.valid += n_valid
+    summary.ground += n_ground
+    summary.obstacles += n_valid - n_ground
+    summary.invalid += res.num_invalid
+    summary.thetas.append(tuple(float(v) for v in res.hyperparameters))
+    for k, v in frame_timings(out).items():  # same stage names as the node's diagnostics
+        summary.add_stage(k, v)
+    summary.add_stage('write', (t2 - t1) * 1e3)
+    summary.add_stage('frame', (t2 - t0) * 1e3)
+
+
+# ---------------------------------------------------------------------------------------------
+# Sample bag shipped in data/
+# ---------------------------------------------------------------------------------------------
+
+def write_sample_bag(source_bag, out_dir, frames: int = 3, topic: str = DEFAULT_TOPIC) -> str:
+    """Copy the first ``frames`` messages of ``topic`` unchanged (raw CDR bytes, same bag times)
+    into a new zstd-compressed (mcap chunk compression) ROS 2 bag; return the .mcap's sha256."""
+    from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
+
+    out = Path(out_dir)
+    if out.exists():
+        raise BagError(f'{out} exists; remove it first')
+    from rosbags.highlevel import AnyReader
+    with AnyReader([Path(source_bag)]) as reader:
+        conns = [c for c in reader.connections if c.topic == topic]
+        if not conns:
+            raise BagError(f'topic {topic} not in {source_bag}')
+        writer = Writer(out, version=9, storage_plugin=StoragePlugin.MCAP)
+        writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
+        with writer:
+            c = conns[0]
+            conn = writer.add_connection(topic, c.msgtype, msgdef=c.msgdef.data, rihs01=c.digest)
+            for i, (_, timestamp, raw) in enumerate(reader.messages(connections=conns)):
+                if i >= frames:
+                    break
+                writer.write(conn, timestamp, bytes(raw))
+    mcap = next(out.glob('*.mcap'))
+    return hashlib.sha256(mcap.read_bytes()).hexdigest()

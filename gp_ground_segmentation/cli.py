@@ -1,0 +1,296 @@
+# SPDX-License-Identifier: Apache-2.0
+"""``gp-ground-seg``: offline tools around the segmenter (no ROS graph needed).
+
+Subcommands:
+
+* ``eval FILE...``     segment point files (.bin/.pcd), bag frames (BAG:INDEX) or whole bags; print
+  per-frame ground precision/recall/F1 against SemanticKITTI labels (when given) and timings.
+* ``replay IN OUT``    bag (or point files) in -> ROS 2 bag with <topic>/ground, <topic>/obstacles
+  and /diagnostics out, using the node's pipeline and parameter file.
+* ``plot FRAME``       side view of one angular segment + bird's-eye view of the frame (PNG).
+* ``make-sample``      re-write the first frames of a bag as a small compressed mcap (data/).
+
+Every expected failure prints one line ``gp-ground-seg <cmd>: error: ...`` on stderr and exits
+with status 2; there is no traceback for bad input.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+
+EXIT_ERROR = 2
+
+
+class CliError(Exception):
+    """An expected failure with a one-line message (exit status 2)."""
+
+
+def _one_line(err: BaseException) -> str:
+    text = ' '.join(str(err).split()) or type(err).__name__
+    return text if len(text) < 400 else text[:397] + '...'
+
+
+def _expected_errors() -> tuple:
+    """Exceptions that mean bad input or environment, not a bug: reported in one line."""
+    errors = [CliError, ValueError, OSError, EOFError]
+    try:
+        from rosbags.highlevel import AnyReaderError
+        from rosbags.rosbag1 import ReaderError as Reader1Error
+        from rosbags.rosbag2 import ReaderError as Reader2Error, WriterError
+        errors += [AnyReaderError, Reader1Error, Reader2Error, WriterError]
+    except ImportError:  # pragma: no cover - rosbags is a dependency
+        pass
+    return tuple(errors)
+
+
+# ---------------------------------------------------------------------------------------------
+# eval
+# ---------------------------------------------------------------------------------------------
+
+def _eval_frames(inputs, topic):
+    """Yield (name, rclpy PointCloud2) for every input: point files, BAG:INDEX or whole bags."""
+    from .bag import FrameSource, is_point_file, read_frame
+    for spec in inputs:
+        path = Path(spec)
+        if path.exists() and not (path.is_file() and is_point_file(path)):
+            with FrameSource([path], topic) as source:
+                for frame in source:
+                    yield f'{path}:{frame.index}', frame.msg
+        else:
+            msg, name = read_frame(spec, topic)
+            yield name, msg
+
+
+def _nan_to_none(value):
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def cmd_eval(args) -> int:
+    from .bag import load_segmenter_params
+    from .evaluation import ground_metrics
+    from .io import read_semantickitti_labels
+    from .pipeline import frame_timings, process_cloud
+    from .segmenter import GroundSegmenter
+
+    if args.repeat < 1:
+        raise CliError('--repeat must be at least 1')
+    params = load_segmenter_params(args.params)
+    labels_files = args.labels or []
+    segmenter = GroundSegmenter(params)
+    frames = []
+    k = 0
+    for name, msg in _eval_frames(args.files, args.topic):
+        runs = []
+        for _ in range(args.repeat):
+            runs.append(process_cloud(msg, segmenter))
+        out = runs[0]  # labels of the first run: the same warm-start history as the node
+        res = out.result
+        timings = {stage: float(np.median([frame_timings(r)[stage] for r in runs]))
+                   for stage in frame_timings(out)}
+        n_valid = int(np.count_nonzero(res.valid_mask))
+        n_ground = int(np.count_nonzero(res.ground_mask))
+        row = {'input': name, 'points': int(res.valid_mask.size), 'valid': n_valid,
+               'ground': n_ground, 'ground_share': n_ground / n_valid if n_valid else None,
+               'hyperparameters': dict(zip(('sigma_f', 'gain', 'sigma_n'),
+                                           (float(v) for v in res.hyperparameters))),
+               'timings_ms': timings, 'repeat': args.repeat}
+        if labels_files:
+            if k >= len(labels_files):
+                raise CliError(f'{len(labels_files)} label file(s) for more frames; give one '
+                               f'--labels file per frame')
+            labels = read_semantickitti_labels(labels_files[k], expected_points=row['points'])
+            row['labels'] = str(labels_files[k])
+            row['metrics'] = {key: _nan_to_none(v) for key, v in
+                              ground_metrics(res.ground_mask, labels,
+                                             args.vegetation_ground).items()}
+        frames.append(row)
+        k += 1
+    if labels_files and len(labels_files) != k:
+        raise CliError(f'{len(labels_files)} label file(s) given for {k} frame(s)')
+    if args.json:
+        print(json.dumps({'frames': frames, 'params_file': args.params,
+                          'vegetation_is_ground': args.vegetation_ground,
+                          'ground_classes': 'road parking sidewalk other-ground lane-marking '
+                                            'terrain' + (' vegetation' if args.vegetation_ground
+                                                         else '')}, indent=2))
+        return 0
+    for row in frames:
+        share = row['ground_share']
+        print(f"{row['input']}: {row['points']} points, {row['valid']} valid, ground share "
+              f"{share if share is None else format(share, '.3f')}")
+        if 'metrics' in row:
+            m = row['metrics']
+            fmt = (lambda v: 'n/a' if v is None else f'{v:.4f}')
+            print(f"  ground precision {fmt(m['precision'])}  recall {fmt(m['recall'])}  "
+                  f"F1 {fmt(m['f1'])}  (TP {m['tp']} FP {m['fp']} FN {m['fn']} TN {m['tn']}, "
+                  f"{m['evaluated_points']} labelled points; vegetation = "
+                  f"{'ground' if args.vegetation_ground else 'non-ground'})")
+        t = row['timings_ms']
+        order = ('decode', 'grid', 'lines', 'gp_fit', 'predict', 'label', 'segment', 'encode')
+        names = [s for s in order if s in t] + sorted(set(t) - set(order) - {'total'})
+        stages = '  '.join(f'{s} {t[s]:.1f}' for s in names)
+        rep = f' (median of {args.repeat})' if args.repeat > 1 else ''
+        print(f"  ms{rep}: total {t.get('total', float('nan')):.1f}  [{stages}]")
+        th = row['hyperparameters']
+        print(f"  theta: sigma_f {th['sigma_f']:.4g} m, gain {th['gain']:.4g}, "
+              f"sigma_n {th['sigma_n']:.4g} m")
+    return 0
+
+
+# ---------------------------------------------------------------------------------------------
+# replay
+# ---------------------------------------------------------------------------------------------
+
+def cmd_replay(args) -> int:
+    from .bag import replay
+    inputs, out = args.inputs[:-1], args.inputs[-1]
+    if not inputs:
+        raise CliError('give an input (bag or point files) and an output bag directory')
+    summary = replay(inputs, out, topic=args.topic, params_file=args.params,
+                     storage=args.storage, force=args.force, max_frames=args.max_frames,
+                     log=lambda text: print(f'gp-ground-seg replay: note: {text}',
+                                            file=sys.stderr))
+    print(summary.table())
+    if summary.skipped:
+        print(f'gp-ground-seg replay: warning: {summary.skipped} frame(s) skipped, see the '
+              f'summary and /diagnostics', file=sys.stderr)
+    return 0
+
+
+# ---------------------------------------------------------------------------------------------
+# plot
+# ---------------------------------------------------------------------------------------------
+
+def cmd_plot(args) -> int:
+    from .bag import load_segmenter_params, read_frame
+    from .plot import plot_frame
+    params = load_segmenter_params(args.params)
+    msg, name = read_frame(args.frame, args.topic)
+    labels = None
+    if args.labels:
+        from .io import read_semantickitti_labels
+        labels = read_semantickitti_labels(args.labels,
+                                           expected_points=int(msg.height) * int(msg.width))
+    out = Path(args.out)
+    info = plot_frame(msg, out, params=params, segment=args.segment, labels=labels, title=name,
+                      vegetation_is_ground=args.vegetation_ground)
+    print(f'wrote {out} (segment {info["segment"]}, {info["points"]} points)')
+    return 0
+
+
+# ---------------------------------------------------------------------------------------------
+# make-sample
+# ---------------------------------------------------------------------------------------------
+
+def cmd_make_sample(args) -> int:
+    from .bag import write_sample_bag
+    digest = write_sample_bag(args.source, args.out, frames=args.frames, topic=args.topic)
+    print(f'wrote {args.out} ({args.frames} frames of {args.topic}); mcap sha256 {digest}')
+    return 0
+
+
+# ---------------------------------------------------------------------------------------------
+# main
+# ---------------------------------------------------------------------------------------------
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with exit status 2 and a one-line message (its default, made explicit)."""
+
+    def error(self, message):
+        self.exit(EXIT_ERROR, f'{self.prog}: error: {" ".join(message.split())}\n')
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(prog='gp-ground-seg', description='Offline tools for the GP ground '
+                     'segmenter: evaluate, replay bags, plot a frame.')
+    sub = parser.add_subparsers(dest='command', required=True, parser_class=_Parser)
+
+    p = sub.add_parser('eval', help='segment point files / bag frames and print metrics',
+                       description='Segment each input (KITTI .bin, .pcd, BAG:INDEX or a whole '
+                       'bag) with one segmenter (theta warm-starts frame to frame, as in the '
+                       'node) and print ground precision/recall/F1 (with --labels) and ms per '
+                       'stage.')
+    p.add_argument('files', nargs='+', metavar='FILE', help='.bin, .pcd, BAG:INDEX or BAG')
+    p.add_argument('--labels', nargs='+', metavar='FILE.label',
+                   help='SemanticKITTI .label file(s), one per frame in order')
+    p.add_argument('--params', metavar='YAML', help='node parameter file (config/params.yaml)')
+    p.add_argument('--topic', default=None, help='PointCloud2 topic for bag inputs '
+                   '(default /velodyne_points)')
+    p.add_argument('--json', action='store_true', help='print JSON instead of text')
+    p.add_argument('--repeat', type=int, default=1, metavar='K',
+                   help='segment each frame K times and report the median ms (labels/metrics '
+                   'are those of the first run)')
+    p.add_argument('--vegetation-ground', action='store_true',
+                   help='count SemanticKITTI class 70 vegetation as ground (a Patchwork '
+                   'variant); default: non-ground')
+    p.set_defaults(func=cmd_eval)
+
+    p = sub.add_parser('replay', help='bag in -> ground/obstacles/diagnostics bag out',
+                       description='Segment every PointCloud2 of a bag (ROS 2 mcap/sqlite3 '
+                       'directory or file, ROS 1 .bag) or of .bin/.pcd files (stamps i*0.1 s, '
+                       'frame_id velodyne) with the node pipeline, and write a ROS 2 bag with '
+                       '<topic>/ground, <topic>/obstacles and /diagnostics.')
+    p.add_argument('inputs', nargs='+', metavar='IN ... OUT_BAG',
+                   help='input bag, point files or a directory of them; last: the output bag')
+    p.add_argument('--topic', default=None,
+                   help='input PointCloud2 topic (default /velodyne_points; if absent and the '
+                   'bag has exactly one PointCloud2 topic, that one)')
+    p.add_argument('--params', metavar='YAML', help='node parameter file (config/params.yaml)')
+    p.add_argument('--storage', choices=('mcap', 'sqlite3'), default='mcap')
+    p.add_argument('--force', action='store_true', help='overwrite OUT_BAG if it exists')
+    p.add_argument('--max-frames', type=int, metavar='K', help='stop after K frames')
+    p.set_defaults(func=cmd_replay)
+
+    p = sub.add_parser('plot', help='plot one frame (side view of a segment + bird\'s-eye view)',
+                       description='FRAME: a .bin/.pcd file or BAG:INDEX (e.g. '
+                       'data/kitti00_sample:0).')
+    p.add_argument('frame', metavar='FRAME')
+    p.add_argument('--segment', type=int, metavar='K',
+                   help='angular segment for the side view (default: the one straight ahead, '
+                   '+x)')
+    p.add_argument('--labels', metavar='FILE.label', help='colour the top view by TP/FP/FN')
+    p.add_argument('--params', metavar='YAML', help='node parameter file (config/params.yaml)')
+    p.add_argument('--topic', default=None, help='PointCloud2 topic for a bag FRAME')
+    p.add_argument('--vegetation-ground', action='store_true',
+                   help='count class 70 vegetation as ground for the error colouring')
+    p.add_argument('--out', required=True, metavar='FIG.png')
+    p.set_defaults(func=cmd_plot)
+
+    p = sub.add_parser('make-sample', help='write the small sample bag shipped in data/')
+    p.add_argument('source', help='input rosbag2 (e.g. ../shared/data/kitti00_velodyne_points)')
+    p.add_argument('out', help='output bag directory (must not exist)')
+    p.add_argument('--frames', type=int, default=3)
+    p.add_argument('--topic', default='/velodyne_points')
+    p.set_defaults(func=cmd_make_sample)
+    return parser
+
+
+def main(argv=None) -> int:
+    """Entry point of ``gp-ground-seg``; returns the exit status (0 ok, 2 error)."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    prog = f'gp-ground-seg {args.command}'
+    try:
+        return args.func(args)
+    except KeyboardInterrupt:
+        print(f'{prog}: interrupted', file=sys.stderr)
+        return 130
+    except BrokenPipeError:  # stdout closed early (e.g. '| head'): the work itself is done
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no 2nd error at exit
+        return 0
+    except _expected_errors() as err:
+        print(f'{prog}: error: {_one_line(err)}', file=sys.stderr)
+        return EXIT_ERROR
+
+
+if __name__ == '__main__':
+    sys.exit(main())

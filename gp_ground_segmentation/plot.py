@@ -1,0 +1,249 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Figures a person can read: one angular segment from the side, and the whole frame from above.
+
+Left panel (side view, r vs z of angular segment K): the raw points of the segment coloured
+ground / obstacle, the ground candidates (lowest point per radial bin), the critical points
+that end line-segments, the fitted line-segments, and the GP ground model mean +/- 2 sigma.
+Right panel (bird's-eye view, x vs y): every valid point coloured ground / obstacle, or, when
+SemanticKITTI labels are given, by error: true ground found (TP), ground missed (FN), obstacle
+called ground (FP), obstacle kept (TN); the selected segment is outlined.
+
+The intermediate arrays come from ``GroundSegmenter.segment(points, details=True).details``
+(``segmenter.SegmentationDetails``); whatever the details do not provide is left out of the
+legend rather than faked. matplotlib is an optional extra (``pip install .[plot]``) and is
+imported only here, lazily.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+COLOURS = {'ground': '#2ca02c', 'obstacle': '#d62728', 'candidate': '#1f77b4',
+           'critical': '#ff7f0e', 'line': '#9467bd', 'gp': '#111111',
+           'tp': '#2ca02c', 'fn': '#1f77b4', 'fp': '#d62728', 'tn': '#b0b0b0',
+           'ignored': '#e0e0e0'}
+
+
+class PlotError(ValueError):
+    """Plotting is impossible (matplotlib missing, bad segment index ...); one-line message."""
+
+
+def _pyplot():
+    try:
+        import matplotlib
+        matplotlib.use('Agg')  # files only, never a window; works without a display
+        import matplotlib.pyplot as plt
+    except ImportError:
+        raise PlotError('matplotlib is not installed: pip install "gp_ground_segmentation[plot]" '
+                        '(or pip install matplotlib)') from None
+    return plt
+
+
+def segment_view(xyz: np.ndarray, result, segment: int, num_segments: int) -> dict:
+    """Arrays of the side view of ``segment``: points, candidates, critical points, lines, GP.
+
+    Only what is available is returned; keys: r, z, ground (points of the segment), and
+    optionally cand_r, cand_z, critical_r, critical_z, lines [(r0, z0, r1, z1)], gp_r, gp_mean,
+    gp_std, zhat_r, zhat.
+    """
+    from .grid import segment_of
+    valid = result.valid_mask
+    seg_all = np.full(len(xyz), -1)
+    seg_all[valid] = segment_of(xyz[valid, 0], xyz[valid, 1], num_segments)
+    sel = seg_all == segment
+    r = np.hypot(xyz[sel, 0], xyz[sel, 1])
+    view = {'r': r, 'z': xyz[sel, 2], 'ground': result.ground_mask[sel]}
+    zhat = result.ground_height[sel]
+    order = np.argsort(r)
+    ok = np.isfinite(zhat[order])
+    view['zhat_r'], view['zhat'] = r[order][ok], zhat[order][ok]
+    if result.details is not None:
+        view.update(_details_view(result.details, segment))
+    return view
+
+
+def _details_view(det, k: int) -> dict:
+    """The segment's candidates, critical points, line-segments and GP curve from the details.
+
+    ``det`` is a ``segmenter.SegmentationDetails``: (M, N) arrays indexed [segment, bin] for the
+    grid candidates, ``lines`` (frame-unique line ids with Deming intercept/slope and r-range),
+    ``training``/``outliers`` masks and the GP mean/std where it was evaluated.
+    """
+    grid, lines = det.grid, det.lines
+    cr = np.asarray(grid.candidate_r[k], float)
+    cz = np.asarray(grid.candidate_z[k], float)
+    ok = np.isfinite(cr) & np.isfinite(cz)
+    training = np.asarray(det.training[k], bool) & ok
+    outliers = np.asarray(det.outliers[k], bool) & ok
+    out = {'cand_r': cr, 'cand_z': cz, 'cand_train': training, 'cand_outlier': outliers,
+           'cand_other': ok & ~training & ~outliers}
+    critical = np.asarray(lines.is_critical[k], bool) & ok
+    out['critical_r'], out['critical_z'] = cr[critical], cz[critical]
+    segs = []
+    for lid in np.unique(lines.line_id[k][ok]):
+        if lid < 0:
+            continue
+        beta, alpha = float(lines.line_slope[lid]), float(lines.intercept[lid])
+        if not (np.isfinite(beta) and np.isfinite(alpha)):
+            continue  # a one-point line has no direction
+        r0, r1 = (float(v) for v in lines.line_r_range[lid])
+        segs.append((r0, alpha + beta * r0, r1, alpha + beta * r1))
+    out['lines'] = segs
+    # where the GP was evaluated: bin edges ('prediction_r'; 'bin_center_r' in earlier versions)
+    where = getattr(det, 'prediction_r', None)
+    gr = np.asarray((where if where is not None else det.bin_center_r)[k], float)
+    gm = np.asarray(det.ground_mean[k], float)
+    gs = np.asarray(det.ground_std[k], float)
+    keep = np.isfinite(gr) & np.isfinite(gm)
+    if np.any(keep):
+        order = np.argsort(gr[keep])
+        out['gp_r'], out['gp_mean'] = gr[keep][order], gm[keep][order]
+        out['gp_std'] = gs[keep][order]
+    return out
+
+
+def default_segment(num_segments: int) -> int:
+    """The segment straight ahead of the sensor (+x axis)."""
+    from .grid import segment_of
+    return int(segment_of(np.array([1.0]), np.array([0.0]), num_segments)[0])
+
+
+def plot_frame(msg, out_path, *, params=None, segment=None, labels=None, title='',
+               vegetation_is_ground=False, dpi=110) -> dict:
+    """Segment one PointCloud2 and save the two-panel figure to ``out_path`` (PNG, SVG, PDF).
+
+    ``labels``: SemanticKITTI classes per point (optional). Returns a dict with the segment
+    index, point count and, with labels, the metrics.
+    """
+    from .cloud import cloud_xyz, read_cloud
+    from .evaluation import ground_metrics, ground_truth_from_labels
+    from .params import SegmenterParams
+    from .segmenter import GroundSegmenter
+
+    plt = _pyplot()  # fail early, before the (slow) segmentation
+    params = params or SegmenterParams()
+    xyz = cloud_xyz(read_cloud(msg))
+    m = params.num_segments
+    if segment is None:
+        segment = default_segment(m)
+    if not 0 <= segment < m:
+        raise PlotError(f'--segment {segment} is outside 0..{m - 1} (num_segments = {m})')
+    result = GroundSegmenter(params).segment(xyz, details=True)
+    view = segment_view(xyz, result, segment, m)
+    info = {'segment': segment, 'points': int(len(xyz))}
+
+    fig, (ax_side, ax_top) = plt.subplots(1, 2, figsize=(17, 7.2),
+                                          gridspec_kw={'width_ratios': [1.45, 1]})
+    _draw_side(ax_side, view, segment, m)
+    if labels is not None:
+        info['metrics'] = ground_metrics(result.ground_mask, labels, vegetation_is_ground)
+    _draw_top(ax_top, xyz, result, labels, vegetation_is_ground, segment, m,
+              ground_truth_from_labels)
+    theta = result.hyperparameters
+    n_valid = int(np.count_nonzero(result.valid_mask))
+    n_ground = int(np.count_nonzero(result.ground_mask))
+    sub = (f'{n_valid} valid points, ground share {n_ground / max(n_valid, 1):.2f}; '
+           f'theta: sigma_f {theta.sigma_f:.3g} m, a {theta.gain:.3g}, '
+           f'sigma_n {theta.sigma_n:.3g} m'
+           f'; segment {result.timings_ms.get("total", float("nan")):.0f} ms')
+    if 'metrics' in info:
+        mt = info['metrics']
+        sub += (f'\nground precision {mt["precision"]:.3f}, recall {mt["recall"]:.3f}, '
+                f'F1 {mt["f1"]:.3f} (vegetation = '
+                f'{"ground" if vegetation_is_ground else "non-ground"})')
+    fig.suptitle(f'{title}\n{sub}' if title else sub, fontsize=11)
+    fig.tight_layout()
+    out = Path(out_path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=dpi)
+    plt.close(fig)
+    return info
+
+
+def _draw_side(ax, v, segment, m):
+    width = 360.0 / m
+    az0 = -180.0 + segment * width
+    ax.scatter(v['r'][~v['ground']], v['z'][~v['ground']], s=4, c=COLOURS['obstacle'],
+               label=f'obstacle points ({np.count_nonzero(~v["ground"])})', rasterized=True)
+    ax.scatter(v['r'][v['ground']], v['z'][v['ground']], s=4, c=COLOURS['ground'],
+               label=f'ground points ({np.count_nonzero(v["ground"])})', rasterized=True)
+    if 'gp_r' in v:
+        gr, gm = v['gp_r'], v['gp_mean']
+        ok = np.isfinite(gr) & np.isfinite(gm)
+        ax.plot(gr[ok], gm[ok], color=COLOURS['gp'], lw=1.6, label='GP mean')
+        if 'gp_std' in v:
+            gs = v['gp_std'][ok]
+            ax.fill_between(gr[ok], gm[ok] - 2 * gs, gm[ok] + 2 * gs, color=COLOURS['gp'],
+                            alpha=0.15, lw=0, label='GP mean ± 2σ')
+    elif v['zhat_r'].size:
+        ax.plot(v['zhat_r'], v['zhat'], color=COLOURS['gp'], lw=1.4,
+                label='predicted ground height ẑ(r)')
+    if 'cand_r' in v:
+        cr, cz = v['cand_r'], v['cand_z']
+        for key, marker, name in (('cand_train', 'o', 'ground candidates (GP training)'),
+                                  ('cand_other', 's', 'candidates not used (steep line)'),
+                                  ('cand_outlier', 'x', 'candidates rejected (outlier)')):
+            mk = v[key]
+            if not np.any(mk):
+                continue
+            style = ({'facecolors': 'none', 'edgecolors': COLOURS['candidate']}
+                     if marker != 'x' else {'c': COLOURS['candidate']})
+            ax.scatter(cr[mk], cz[mk], s=40, marker=marker, lw=1.3, zorder=3,
+                       label=f'{name} ({np.count_nonzero(mk)})', **style)
+    if 'critical_r' in v and v['critical_r'].size:
+        ax.scatter(v['critical_r'], v['critical_z'], s=90, marker='D', facecolors='none',
+                   edgecolors=COLOURS['critical'], lw=1.6, zorder=4,
+                   label=f'critical points ({v["critical_r"].size})')
+    for i, (r0, z0, r1, z1) in enumerate(v.get('lines', [])):
+        ax.plot([r0, r1], [z0, z1], color=COLOURS['line'], lw=2.2, alpha=0.85, zorder=2,
+                label=f'line-segments ({len(v["lines"])})' if i == 0 else None)
+    ax.set_xlabel('radial distance r (m)')
+    ax.set_ylabel('height z (m, sensor frame)')
+    ax.set_title(f'side view of angular segment {segment} '
+                 f'(azimuth {az0:.1f}° to {az0 + width:.1f}°, {v["r"].size} points)')
+    if v['z'].size:
+        lo, hi = np.percentile(v['z'], [0.5, 99.5])
+        pad = 0.3 + 0.1 * (hi - lo)
+        ax.set_ylim(lo - pad, hi + pad)  # below-ground reflection noise would squash the plot
+    ax.grid(True, alpha=0.3)
+    ax.legend(loc='upper left', fontsize=8, markerscale=1.5, framealpha=0.9)
+
+
+def _draw_top(ax, xyz, result, labels, vegetation_is_ground, segment, m, truth_fn):
+    valid = result.valid_mask
+    ground = result.ground_mask
+    x, y = xyz[:, 0], xyz[:, 1]
+    if labels is None:
+        groups = [('ground', ground, COLOURS['ground']),  # obstacles drawn on top
+                  ('obstacle', valid & ~ground, COLOURS['obstacle'])]
+        ax.set_title('bird\'s-eye view: segmenter labels')
+    else:
+        truth, evaluated = truth_fn(labels, vegetation_is_ground)
+        ev = evaluated & valid
+        groups = [('not evaluated (class 0/1)', valid & ~evaluated, COLOURS['ignored']),
+                  ('TN obstacle kept', ev & ~ground & ~truth, COLOURS['tn']),
+                  ('TP ground found', ev & ground & truth, COLOURS['tp']),
+                  ('FN ground missed', ev & ~ground & truth, COLOURS['fn']),
+                  ('FP obstacle called ground', ev & ground & ~truth, COLOURS['fp'])]
+        ax.set_title('bird\'s-eye view: errors against SemanticKITTI labels')
+    for name, mask, colour in groups:
+        ax.scatter(x[mask], y[mask], s=0.4 if 'TN' in name or 'not' in name else 0.8, c=colour,
+                   lw=0, label=f'{name} ({np.count_nonzero(mask)})', rasterized=True)
+    width = 2 * math.pi / m
+    a0 = -math.pi + segment * width
+    reach = 40.0
+    far = 2 * reach  # the wedge runs past the axes so it is visible at every azimuth
+    wedge = [(0.0, 0.0), (far * math.cos(a0), far * math.sin(a0)),
+             (far * math.cos(a0 + width), far * math.sin(a0 + width))]
+    ax.fill(*zip(*wedge), color='#f5c400', alpha=0.35, lw=0.8, ec='k', ls='--', zorder=0.5,
+            label=f'segment {segment} (side view)')
+    ax.set_xlim(-reach, reach)
+    ax.set_ylim(-reach, reach)
+    ax.set_aspect('equal')
+    ax.set_xlabel('x (m)')
+    ax.set_ylabel('y (m)')
+    ax.grid(True, alpha=0.3)
+    ax.legend(loc='upper right', fontsize=8, markerscale=8, framealpha=0.9)

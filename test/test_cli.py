@@ -1,0 +1,191 @@
+# SPDX-License-Identifier: Apache-2.0
+"""gp-ground-seg eval / plot / make-sample, run in-process through cli.main().
+
+Accuracy numbers are not asserted here (test_segmenter does that); these tests check that the
+tool reads the real labelled frame, reports consistent metrics and timings, writes a real PNG,
+rebuilds the shipped sample bag bit for bit, and fails with one line and status 2.
+"""
+
+import hashlib
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gp_ground_segmentation.cli import main
+
+REPO = Path(__file__).resolve().parents[1]
+DATA = REPO.parent / 'shared' / 'data'
+SCAN = DATA / 'kitti_sequnknown_spvnas_000000.bin'
+LABELS = DATA / 'kitti_sequnknown_spvnas_000000.label'
+BAG = DATA / 'kitti00_velodyne_points'
+SAMPLE = REPO / 'data' / 'kitti00_sample'
+
+needs_data = pytest.mark.skipif(not SCAN.is_file(), reason=f'real data not found: {DATA} '
+                                '(../shared/data beside the repo)')
+
+
+def _label_counts():
+    classes = np.fromfile(LABELS, dtype='<u4') & 0xFFFF
+    ground = np.isin(classes, (40, 44, 48, 49, 60, 72))
+    evaluated = ~np.isin(classes, (0, 1))
+    return int(np.count_nonzero(ground & evaluated)), int(np.count_nonzero(evaluated))
+
+
+@needs_data
+def test_eval_json_with_labels(capsys):
+    assert main(['eval', str(SCAN), '--labels', str(LABELS), '--json']) == 0
+    doc = json.loads(capsys.readouterr().out)
+    (frame,) = doc['frames']
+    m = frame['metrics']
+    n_truth_ground, n_evaluated = _label_counts()
+    assert frame['points'] == SCAN.stat().st_size // 16
+    assert m['evaluated_points'] == n_evaluated
+    assert m['tp'] + m['fn'] == n_truth_ground
+    assert m['tp'] + m['fp'] + m['fn'] + m['tn'] == n_evaluated
+    assert m['precision'] == pytest.approx(m['tp'] / (m['tp'] + m['fp']))
+    assert m['recall'] == pytest.approx(m['tp'] / (m['tp'] + m['fn']))
+    assert doc['vegetation_is_ground'] is False
+    for stage in ('decode', 'encode', 'total'):
+        assert frame['timings_ms'][stage] > 0
+    assert set(frame['hyperparameters']) == {'sigma_f', 'gain', 'sigma_n'}
+
+
+@needs_data
+def test_eval_text_with_labels_and_vegetation_flag(capsys):
+    assert main(['eval', str(SCAN), '--labels', str(LABELS)]) == 0
+    text = capsys.readouterr().out
+    assert re.search(r'ground precision \d\.\d{4}\s+recall \d\.\d{4}\s+F1 \d\.\d{4}', text)
+    assert 'vegetation = non-ground' in text and 'ms: total' in text
+    assert main(['eval', str(SCAN), '--labels', str(LABELS), '--vegetation-ground',
+                 '--json']) == 0
+    doc = json.loads(capsys.readouterr().out)
+    classes = np.fromfile(LABELS, dtype='<u4') & 0xFFFF
+    m = doc['frames'][0]['metrics']
+    assert m['tp'] + m['fn'] == _label_counts()[0] + int(np.count_nonzero(classes == 70))
+
+
+@needs_data
+def test_eval_without_labels_several_inputs_and_repeat(capsys):
+    pcd = DATA / 'sensors' / 'velodyne_vlp32.pcd'
+    assert main(['eval', str(SCAN), str(pcd), f'{BAG}:2', '--repeat', '2', '--json']) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert [f['input'] for f in doc['frames']][:2] == [str(SCAN), str(pcd)]
+    assert doc['frames'][2]['input'].startswith(f'{BAG}:2')
+    assert all('metrics' not in f and f['repeat'] == 2 for f in doc['frames'])
+    assert all(0 < f['ground_share'] < 1 for f in doc['frames'])
+    assert main(['eval', str(pcd)]) == 0
+    out = capsys.readouterr().out
+    assert 'ground share' in out and 'precision' not in out
+
+
+@needs_data
+@pytest.mark.parametrize('argv, expected', [
+    (['eval', str(SCAN), '--labels', str(LABELS), str(LABELS)], 'label file(s) given for 1'),
+    (['eval', '/nonexistent.bin'], 'no such file'),
+    (['eval', str(SCAN), '--labels', str(DATA / 'kitti_unlabeled_patchworkpp_000000.bin')],
+     'labels but the scan has'),
+    (['eval', str(SCAN), '--params', '/nonexistent.yaml'], 'parameter file not found'),
+    (['plot', str(SCAN), '--segment', '100000', '--out', '/tmp/never.png'], 'outside 0..'),
+])
+def test_errors_are_one_line_exit_2(argv, expected, capsys):
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and expected in err[0] and 'Traceback' not in err[0]
+
+
+def test_usage_error_exit_2(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(['frobnicate'])
+    assert exc.value.code == 2
+    assert len(capsys.readouterr().err.strip().splitlines()) == 1
+
+
+def _png_size(path):
+    head = path.read_bytes()[:24]
+    assert head[:8] == b'\x89PNG\r\n\x1a\n'
+    return int.from_bytes(head[16:20], 'big'), int.from_bytes(head[20:24], 'big')
+
+
+@needs_data
+def test_plot_labelled_frame_writes_png(tmp_path, capsys):
+    pytest.importorskip('matplotlib')
+    out = tmp_path / 'figs' / 'frame.png'  # directory created by the tool
+    assert main(['plot', str(SCAN), '--labels', str(LABELS), '--segment', '7',
+                 '--out', str(out)]) == 0
+    assert 'segment 7' in capsys.readouterr().out
+    width, height = _png_size(out)
+    assert width > 1000 and height > 500
+    assert out.stat().st_size > 50_000  # a real picture, not an empty canvas
+
+
+def test_plot_shipped_sample_bag_frame(tmp_path):
+    pytest.importorskip('matplotlib')
+    out = tmp_path / 'f.png'
+    assert main(['plot', f'{SAMPLE}:1', '--out', str(out)]) == 0
+    assert _png_size(out)[0] > 1000
+
+
+def test_plot_side_view_data_comes_from_details():
+    """The side view shows the segmenter's own candidates, lines and GP curve."""
+    from gp_ground_segmentation.bag import read_frame
+    from gp_ground_segmentation.cloud import cloud_xyz, read_cloud
+    from gp_ground_segmentation.plot import default_segment, segment_view
+    from gp_ground_segmentation.segmenter import GroundSegmenter
+    msg, _ = read_frame(f'{SAMPLE}:0')
+    xyz = cloud_xyz(read_cloud(msg))
+    seg = GroundSegmenter()
+    res = seg.segment(xyz, details=True)
+    k = default_segment(seg.params.num_segments)
+    view = segment_view(xyz, res, k, seg.params.num_segments)
+    assert view['r'].size > 100 and view['ground'].any()
+    det = res.details
+    n_cand = int(np.count_nonzero(np.isfinite(det.grid.candidate_r[k])))
+    assert n_cand > 5
+    assert int(np.count_nonzero(view['cand_train'] | view['cand_other'] | view['cand_outlier'])) \
+        == n_cand
+    assert view['lines'] and view['gp_r'].size > 5 and np.all(view['gp_std'] >= 0)
+
+
+def test_plot_without_matplotlib_is_one_line(monkeypatch, tmp_path, capsys):
+    import sys
+    monkeypatch.setitem(sys.modules, 'matplotlib', None)  # import fails like a missing extra
+    assert main(['plot', f'{SAMPLE}:0', '--out', str(tmp_path / 'x.png')]) == 2
+    err = capsys.readouterr().err
+    assert 'matplotlib is not installed' in err and len(err.strip().splitlines()) == 1
+
+
+def _readme_sha256():
+    text = (REPO / 'data' / 'README.md').read_text()
+    match = re.search(r'kitti00_sample\.mcap[^\n]*?([0-9a-f]{64})', text)
+    assert match, 'data/README.md must state the sha256 of kitti00_sample.mcap'
+    return match.group(1)
+
+
+def test_shipped_sample_matches_readme_checksum():
+    mcap = SAMPLE / 'kitti00_sample.mcap'
+    assert mcap.stat().st_size + (SAMPLE / 'metadata.yaml').stat().st_size <= 6 * 1024 * 1024
+    assert hashlib.sha256(mcap.read_bytes()).hexdigest() == _readme_sha256()
+
+
+def _messages(bag):
+    from rosbags.highlevel import AnyReader
+    with AnyReader([bag]) as reader:
+        return [(c.topic, c.msgtype, t, bytes(raw)) for c, t, raw in reader.messages()]
+
+
+@pytest.mark.skipif(not BAG.is_dir(), reason='real data not found')
+def test_make_sample_rebuilds_the_shipped_bag(tmp_path, capsys):
+    """The command in data/README.md re-creates the shipped sample: same messages, raw CDR
+    bytes unchanged from the source bag (the file hash also matches with rosbags 0.11)."""
+    out = tmp_path / 'kitti00_sample'
+    assert main(['make-sample', str(BAG), str(out), '--frames', '3']) == 0
+    digest = hashlib.sha256((out / 'kitti00_sample.mcap').read_bytes()).hexdigest()
+    assert digest in capsys.readouterr().out
+    rebuilt, shipped = _messages(out), _messages(SAMPLE)
+    assert len(rebuilt) == 3 and rebuilt == shipped
+    assert shipped == _messages(BAG)[:3]
+    # zstd chunk compression: the file is smaller than the raw messages it holds
+    assert (out / 'kitti00_sample.mcap').stat().st_size < sum(len(m[3]) for m in rebuilt)

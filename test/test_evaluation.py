@@ -1,0 +1,73 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Ground metrics: hand-computed confusion counts, SemanticKITTI class handling, edge cases."""
+
+import math
+
+import numpy as np
+import pytest
+
+from gp_ground_segmentation.evaluation import (GROUND_CLASSES, IGNORED_CLASSES, ground_metrics,
+                                               ground_truth_from_labels, truth_metrics)
+
+
+def test_truth_metrics_hand_computed():
+    # truth:  G G G G N N N N N N
+    # pred:   G G G N G G N N N N  -> TP 3, FN 1, FP 2, TN 4
+    truth = np.array([1, 1, 1, 1, 0, 0, 0, 0, 0, 0], bool)
+    pred = np.array([1, 1, 1, 0, 1, 1, 0, 0, 0, 0], bool)
+    m = truth_metrics(pred, truth)
+    assert (m['tp'], m['fp'], m['fn'], m['tn']) == (3, 2, 1, 4)
+    assert m['evaluated_points'] == 10
+    assert m['precision'] == pytest.approx(3 / 5)
+    assert m['recall'] == pytest.approx(3 / 4)
+    assert m['f1'] == pytest.approx(2 * 0.6 * 0.75 / 1.35)
+
+
+def test_truth_metrics_evaluated_mask_drops_points():
+    truth = np.array([1, 1, 0, 0], bool)
+    pred = np.array([1, 0, 1, 0], bool)
+    m = truth_metrics(pred, truth, evaluated_mask=np.array([1, 1, 0, 1], bool))
+    assert (m['tp'], m['fp'], m['fn'], m['tn'], m['evaluated_points']) == (1, 0, 1, 1, 3)
+    assert m['precision'] == 1.0 and m['recall'] == 0.5
+
+
+def test_semantic_kitti_classes_and_instance_bits():
+    classes = np.array([40, 44, 48, 49, 60, 72, 70, 10, 50, 0, 1, 252], np.uint32)
+    # instance ids in the high 16 bits must not matter
+    raw = classes | (np.arange(classes.size, dtype=np.uint32) + 7) << 16
+    # predict ground for: road, parking, vegetation, car, unlabeled
+    pred = np.isin(classes, (40, 44, 70, 10, 0))
+    m = ground_metrics(pred, raw)
+    # 10 evaluated (0 and 1 ignored); ground truth = 6 ground classes
+    assert m['evaluated_points'] == 10
+    assert (m['tp'], m['fp'], m['fn'], m['tn']) == (2, 2, 4, 2)
+    assert m['precision'] == pytest.approx(0.5)
+    assert m['recall'] == pytest.approx(2 / 6)
+    # vegetation counted as ground in the Patchwork variant: 70 turns from FP to TP
+    mv = ground_metrics(pred, raw, vegetation_is_ground=True)
+    assert (mv['tp'], mv['fp'], mv['fn'], mv['tn']) == (3, 1, 4, 2)
+
+
+def test_class_lists_match_protocol():
+    assert set(GROUND_CLASSES) == {40, 44, 48, 49, 60, 72}
+    assert set(IGNORED_CLASSES) == {0, 1}
+    truth, evaluated = ground_truth_from_labels(np.array([70, 1, 72], np.uint32))
+    assert truth.tolist() == [False, False, True]
+    assert evaluated.tolist() == [True, False, True]
+
+
+def test_degenerate_cases_are_nan_or_zero_not_fake_perfect():
+    truth = np.array([0, 0, 0], bool)
+    m = truth_metrics(np.zeros(3, bool), truth)
+    assert math.isnan(m['precision']) and math.isnan(m['recall']) and math.isnan(m['f1'])
+    m = truth_metrics(np.zeros(3, bool), np.array([1, 0, 0], bool))  # missed all ground
+    assert m['recall'] == 0.0 and math.isnan(m['precision']) and m['f1'] == 0.0
+    m = truth_metrics(np.ones(3, bool), truth)  # called ground where there is none
+    assert m['precision'] == 0.0 and m['f1'] == 0.0
+
+
+def test_length_mismatch_is_a_value_error():
+    with pytest.raises(ValueError, match='labels have 3'):
+        ground_metrics(np.zeros(4, bool), np.zeros(3, np.uint32))
+    with pytest.raises(ValueError):
+        truth_metrics(np.zeros(4, bool), np.zeros(5, bool))

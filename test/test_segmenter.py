@@ -1,0 +1,259 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Pipeline tests: synthetic scenes with exact truth, the real labelled frame, API contracts."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gp_ground_segmentation import GroundSegmenter, SegmenterParams, valid_points_mask
+from gp_ground_segmentation.baselines import constant_height_ground, ransac_plane_ground
+from gp_ground_segmentation.evaluation import ground_metrics, truth_metrics
+from gp_ground_segmentation.io import read_kitti_bin, read_semantickitti_labels
+from gp_ground_segmentation.synthetic import make_scene, simulate_scan
+
+DATA = Path(__file__).resolve().parents[1].parent / 'shared' / 'data'
+LABELED_BIN = DATA / 'kitti_sequnknown_spvnas_000000.bin'
+LABELED_LABELS = DATA / 'kitti_sequnknown_spvnas_000000.label'
+needs_data = pytest.mark.skipif(not LABELED_BIN.exists(), reason=f'{DATA} not present')
+
+SLOPED = ('ramp10', 'ramp15', 'ramp20', 'onslope15')
+
+
+def _stream(points, frames=2, params=None):
+    """Segment the same scan as a short stream (the first frame is the cold start)."""
+    seg = GroundSegmenter(params or SegmenterParams())
+    for _ in range(frames):
+        result = seg.segment(points)
+    return seg, result
+
+
+@pytest.fixture(scope='module')
+def scans():
+    return {name: simulate_scan(make_scene(name)) for name in
+            ('flat', 'crowned_curb', 'hill', 'mixed') + SLOPED}
+
+
+# --- synthetic scenes with exact truth ---------------------------------------------------
+@pytest.mark.parametrize('name', SLOPED)
+def test_sloped_scene_recall_and_precision(scans, name):
+    scan = scans[name]
+    _, result = _stream(scan.points)
+    m = truth_metrics(result.ground_mask, scan.is_ground)
+    assert m['recall'] >= 0.97, m
+    assert m['precision'] >= 0.95, m
+
+
+@pytest.mark.parametrize('name', SLOPED + ('hill',))
+def test_slope_handling_beats_flat_ground_baselines(scans, name):
+    """The same threshold with a level plane or one RANSAC plane loses the slopes."""
+    scan = scans[name]
+    _, result = _stream(scan.points)
+    ours = truth_metrics(result.ground_mask, scan.is_ground)['f1']
+    level = truth_metrics(constant_height_ground(scan.points), scan.is_ground)['f1']
+    plane = truth_metrics(ransac_plane_ground(scan.points), scan.is_ground)['f1']
+    assert ours > level + 0.02, (ours, level)
+    if name != 'onslope15':  # one inclined plane is exactly what RANSAC models
+        assert ours > plane + 0.02, (ours, plane)
+
+
+@pytest.mark.parametrize('name', ['flat', 'crowned_curb'])
+def test_flat_scene_recall(scans, name):
+    scan = scans[name]
+    _, result = _stream(scan.points)
+    m = truth_metrics(result.ground_mask, scan.is_ground)
+    assert m['recall'] >= 0.98, m
+    assert m['precision'] >= 0.90, m
+
+
+def test_ramp_ground_height_follows_the_slope(scans):
+    """Predicted ground height on the visible 15 degree ramp is within 15 cm of the terrain."""
+    scan = scans['ramp15']
+    _, result = _stream(scan.points)
+    true_z = scan.terrain_z(scan.points[:, 0], scan.points[:, 1])
+    on_ramp = scan.is_ground & (scan.points[:, 0] > 12.0) & (np.abs(scan.points[:, 1]) < 5.0)
+    assert on_ramp.sum() > 1000
+    err = np.abs(result.ground_height[on_ramp] - true_z[on_ramp])
+    assert np.median(err) < 0.05
+    assert np.percentile(err, 95) < 0.15
+
+
+def test_cars_walls_and_poles_are_obstacles(scans):
+    """Obstacle points more than 0.3 m above the terrain are almost never ground."""
+    scan = scans['mixed']
+    _, result = _stream(scan.points)
+    height_above = scan.points[:, 2] - scan.terrain_z(scan.points[:, 0], scan.points[:, 1])
+    tall = ~scan.is_ground & (height_above > 0.3)
+    assert tall.sum() > 5000
+    assert result.ground_mask[tall].mean() < 0.01
+
+
+def test_curb_and_sidewalk_are_ground(scans):
+    scan = scans['crowned_curb']
+    _, result = _stream(scan.points)
+    sidewalk = scan.is_ground & (np.abs(scan.points[:, 1]) > 4.2) & (np.abs(scan.points[:, 1]) < 7)
+    assert sidewalk.sum() > 500
+    assert result.ground_mask[sidewalk].mean() > 0.97
+
+
+# --- real labelled frame -----------------------------------------------------------------
+@needs_data
+def test_real_semantickitti_frame_f1_and_recall():
+    points = read_kitti_bin(LABELED_BIN)
+    labels = read_semantickitti_labels(LABELED_LABELS, expected_points=len(points))
+    _, result = _stream(points, frames=3)
+    m = ground_metrics(result.ground_mask, labels)
+    assert m['f1'] >= 0.93, m
+    assert m['recall'] >= 0.95, m
+
+
+@needs_data
+def test_real_frame_below_ground_noise_does_not_become_ground_level():
+    """The frame has reflections down to z = -27 m; they must not drag the ground down."""
+    points = read_kitti_bin(LABELED_BIN)
+    labels = read_semantickitti_labels(LABELED_LABELS)
+    _, result = _stream(points)
+    road = labels == 40
+    err = points[road, 2] - result.ground_height[road]
+    assert np.percentile(np.abs(err), 95) < 0.25
+    assert result.ground_height[np.isfinite(result.ground_height)].min() > -12.0
+
+
+def test_deep_noise_points_are_rejected_as_candidates(scans):
+    """Inject reflection noise 5-20 m below a flat road: the road is still found."""
+    scan = scans['flat']
+    rng = np.random.default_rng(3)
+    noise = scan.points[rng.choice(len(scan.points), 400, replace=False)].copy()
+    noise[:, 2] -= rng.uniform(5, 20, len(noise))
+    points = np.concatenate([scan.points, noise])
+    _, result = _stream(points)
+    clean = truth_metrics(result.ground_mask[:len(scan.points)], scan.is_ground)
+    assert clean['recall'] >= 0.98 and clean['precision'] >= 0.90, clean
+    assert result.stats['outlier_candidates'] > 0
+
+
+# --- no height or distance cut-offs --------------------------------------------------------
+@pytest.mark.parametrize('shift_m', [-30.0, 25.0])
+def test_no_height_cutoff_ground_found_at_any_height(scans, shift_m):
+    """Shifting the whole scene up or down by tens of metres changes nothing."""
+    scan = scans['ramp10']
+    shifted = scan.points.copy()
+    shifted[:, 2] += shift_m
+    _, base = _stream(scan.points)
+    _, moved = _stream(shifted)
+    agree = (base.ground_mask == moved.ground_mask).mean()
+    assert agree > 0.995
+    m = truth_metrics(moved.ground_mask, scan.is_ground)
+    assert m['recall'] >= 0.97
+
+
+def test_far_ground_is_labelled(scans):
+    """Ground beyond 40 m is still ground (no range cut-off)."""
+    scan = scans['flat']
+    _, result = _stream(scan.points)
+    r = np.hypot(scan.points[:, 0], scan.points[:, 1])
+    far = scan.is_ground & (r > 40)
+    assert far.sum() > 100
+    assert result.ground_mask[far].mean() > 0.97
+
+
+# --- API contracts -------------------------------------------------------------------------
+def test_invalid_points_are_neither_ground_nor_obstacle(scans):
+    points = scans['flat'].points.astype(np.float64)
+    points[::50, :3] = np.nan
+    points[1::50, 0] = np.inf
+    points[2::50, :3] = 0.0  # the organized-cloud no-return value
+    seg = GroundSegmenter()
+    result = seg.segment(points)
+    valid = valid_points_mask(points[:, :3])
+    assert np.array_equal(result.valid_mask, valid)
+    assert not (result.ground_mask & ~valid).any()
+    assert not (result.obstacle_mask & ~valid).any()
+    assert np.array_equal(result.ground_mask | result.obstacle_mask, valid)
+    assert result.num_invalid == int((~valid).sum())
+    assert np.isnan(result.ground_height[~valid]).all()
+    assert np.isfinite(result.ground_height[valid]).all()
+
+
+def test_float32_and_float64_give_the_same_labels(scans):
+    points = scans['hill'].points
+    _, r32 = _stream(points.astype(np.float32))
+    _, r64 = _stream(points.astype(np.float64))
+    assert (r32.ground_mask == r64.ground_mask).mean() > 0.999
+
+
+@pytest.mark.parametrize('n', [0, 1, 2, 3, 10])
+def test_tiny_and_empty_clouds(n):
+    rng = np.random.default_rng(n)
+    points = rng.normal(size=(n, 4)).astype(np.float32)
+    result = GroundSegmenter().segment(points)
+    assert result.ground_mask.shape == (n,)
+    assert np.array_equal(result.ground_mask | result.obstacle_mask, result.valid_mask)
+    assert 'total' in result.timings_ms
+
+
+def test_rejects_wrong_shape():
+    with pytest.raises(ValueError, match='N, >=3'):
+        GroundSegmenter().segment(np.zeros((10, 2)))
+
+
+def test_timings_and_stats_are_reported(scans):
+    _, result = _stream(scans['flat'].points)
+    for stage in ('grid', 'lines', 'gp_fit', 'predict', 'label', 'total'):
+        assert result.timings_ms[stage] >= 0
+    assert result.timings_ms['total'] >= sum(result.timings_ms[s] for s in
+                                             ('grid', 'lines', 'gp_fit', 'predict', 'label'))
+    assert result.stats['candidates'] >= result.stats['training_candidates'] > 0
+    assert np.isfinite(result.stats['log_marginal_likelihood'])
+
+
+def test_theta_is_learned_and_warm_started(scans):
+    seg = GroundSegmenter()
+    start = seg.hyperparameters
+    seg.segment(scans['ramp15'].points)
+    learned = seg.hyperparameters
+    assert learned != start
+    p = seg.params
+    assert p.sigma_f_min_m <= learned.sigma_f <= p.sigma_f_max_m
+    assert p.length_scale_gain_min <= learned.gain <= p.length_scale_gain_max
+    assert p.sigma_n_min_m <= learned.sigma_n <= p.sigma_n_max_m
+    second = seg.segment(scans['ramp15'].points)
+    assert second.stats['optimizer_iterations'] <= p.optimizer_max_evaluations
+    seg.reset()
+    assert seg.hyperparameters == start
+
+
+def test_frozen_theta_when_learning_disabled(scans):
+    params = SegmenterParams(optimizer_max_evaluations=0, optimizer_first_frame_evaluations=0)
+    seg = GroundSegmenter(params)
+    start = seg.hyperparameters
+    seg.segment(scans['flat'].points)
+    assert seg.hyperparameters == start
+
+
+def test_set_params_takes_effect_next_frame(scans):
+    points = scans['flat'].points
+    seg = GroundSegmenter()
+    loose = seg.segment(points).ground_mask.sum()
+    seg.set_params(seg.params.replace(ground_threshold_m=0.05))
+    tight = seg.segment(points).ground_mask.sum()
+    assert tight < loose
+    with pytest.raises(ValueError, match='ground_threshold_m'):
+        seg.set_params(seg.params.replace(ground_threshold_m=-1.0))
+
+
+def test_details_are_consistent(scans):
+    scan = scans['ramp10']
+    seg = GroundSegmenter()
+    result = seg.segment(scan.points, details=True)
+    d = result.details
+    p = seg.params
+    assert d.grid.candidate_r.shape == (p.num_segments, p.num_bins)
+    assert d.prediction_r.shape == (p.num_segments, p.num_bins + 1)
+    assert not (d.training & d.outliers).any()
+    assert (d.training <= d.grid.has_candidate).all()
+    assert d.training.sum() == result.stats['training_candidates']
+    # labels follow from the reported heights and thresholds
+    z = scan.points[d.valid_index, 2]
+    recomputed = z - result.ground_height[d.valid_index] <= d.threshold + 1e-6
+    assert (recomputed == result.ground_mask[d.valid_index]).mean() > 0.9999

@@ -225,8 +225,11 @@ class FrameGP:
         diag = np.diagonal(sol.a_inv, axis1=1, axis2=2)
         return np.where(self.valid, sol.alpha / diag, 0.0)
 
-    def predict(self, sol: GPSolution, r_star, d_star):
-        """Posterior mean (absolute z) and std at r_star, d_star (S, k) of the batch segments."""
+    def predict(self, sol: GPSolution, r_star, d_star, with_std=True):
+        """Posterior mean (absolute z) and std at r_star, d_star (S, k) of the batch segments.
+
+        ``with_std=False`` skips the variance (the costlier half) and returns std = None.
+        """
         sigma_f, gain, _ = sol.theta
         l_star = gain * np.asarray(d_star, dtype=np.float64)[:, :, None]
         l_train = gain * self.d[:, None, :]
@@ -234,6 +237,8 @@ class FrameGP:
                                  self.r[:, None, :], l_train, sigma_f)
         k_star = np.where(self.valid[:, None, :], k_star, 0.0)
         mean = np.einsum('skn,sn->sk', k_star, sol.alpha) + self.mean
+        if not with_std:
+            return mean, None
         reduce = np.einsum('skn,snm,skm->sk', k_star, sol.a_inv, k_star, optimize=True)
         var = np.maximum(sigma_f * sigma_f - reduce, 0.0)  # clamp round-off negatives
         return mean, np.sqrt(var)

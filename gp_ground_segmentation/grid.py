@@ -66,7 +66,8 @@ class RadialGrid:
 def segment_of(x: np.ndarray, y: np.ndarray, num_segments: int) -> np.ndarray:
     """Angular segment index in [0, M) of each point; segment 0 starts at azimuth -pi."""
     theta = np.arctan2(y, x)
-    seg = ((theta + np.pi) * (num_segments / (2.0 * np.pi))).astype(np.intp)
+    scale = np.asarray(num_segments / (2.0 * np.pi), dtype=theta.dtype)  # keep float32 float32
+    seg = ((theta + np.asarray(np.pi, dtype=theta.dtype)) * scale).astype(np.intp)
     # arctan2 can return exactly +pi, which would land in segment M: clip, never wrap silently.
     return np.clip(seg, 0, num_segments - 1)
 
@@ -94,7 +95,9 @@ def build_grid(x: np.ndarray, y: np.ndarray, z: np.ndarray, num_segments: int,
     r_max[empty_segment] = 0.0
     width = np.maximum((r_max - r_min) / n_count, 1e-3)
 
-    position = (r - r_min[seg]) / width[seg]
+    # per-point arithmetic in the input's precision (float32 from drivers: half the traffic)
+    inv_width = (1.0 / width).astype(r.dtype)
+    position = (r - r_min.astype(r.dtype)[seg]) * inv_width[seg]
     bins = np.minimum(position.astype(np.intp), n_count - 1)  # r == r_max: outer edge
     fraction = np.minimum(position - bins, 1.0)
     key = seg * n_count + bins

@@ -81,14 +81,23 @@ def deming_fit(s_rr, s_zz, s_rz, mean_r, mean_z, variance_ratio):
 
 
 def _fit_from_sums(n, sr, sz, srr, szz, srz, variance_ratio):
+    """Deming fit from raw sums (n, Sr, Sz, Srr, Szz, Srz), vectorised over lines.
+
+    The same closed form as :func:`deming_fit`, inlined without its argument checks because
+    it runs twice per bin inside the line-growing loop.
+    """
     with np.errstate(divide='ignore', invalid='ignore'):
         mean_r = sr / n
         mean_z = sz / n
-        cov_rr = srr / n - mean_r * mean_r
-        cov_zz = szz / n - mean_z * mean_z
+        cov_rr = np.maximum(srr / n - mean_r * mean_r, 0.0)
+        cov_zz = np.maximum(szz / n - mean_z * mean_z, 0.0)
         cov_rz = srz / n - mean_r * mean_z
-    return deming_fit(np.maximum(cov_rr, 0.0), np.maximum(cov_zz, 0.0), cov_rz, mean_r, mean_z,
-                      variance_ratio)
+        diff = cov_zz - variance_ratio * cov_rr
+        beta = (diff + np.sqrt(diff * diff + 4.0 * variance_ratio * cov_rz * cov_rz)) / (
+            2.0 * cov_rz)
+        beta = np.where(cov_rz == 0, np.where(diff > 0, np.inf, 0.0), beta)
+        alpha = mean_z - beta * mean_r
+    return alpha, beta
 
 
 def extract_lines(cand_r: np.ndarray, cand_z: np.ndarray, density: np.ndarray, *,
@@ -109,6 +118,9 @@ def extract_lines(cand_r: np.ndarray, cand_z: np.ndarray, density: np.ndarray, *
     rr = cand_r - r0[:, None]
     zz = cand_z - z0[:, None]
 
+    # moments (1, r, z, r^2, z^2, r z) of every candidate, 0 where there is none
+    rr0, zz0 = np.where(present, rr, 0.0), np.where(present, zz, 0.0)
+    moments = np.stack([present.astype(np.float64), rr0, zz0, rr0 * rr0, zz0 * zz0, rr0 * zz0])
     sums = np.zeros((6, m_count))  # n, Sr, Sz, Srr, Szz, Srz of each segment's current line
     last_r = np.full(m_count, np.nan)
     last_z = np.full(m_count, np.nan)
@@ -122,52 +134,54 @@ def extract_lines(cand_r: np.ndarray, cand_z: np.ndarray, density: np.ndarray, *
     next_line = 0
     line_id = np.full((m_count, n_count), -1, dtype=np.intp)
     is_critical = np.zeros((m_count, n_count), dtype=bool)
+    low_density, high_density = 1.0 / max_density_jump, max_density_jump
 
-    for k in range(n_count):
-        has = present[:, k]
-        if not has.any():
-            continue
-        r, z, rho = rr[:, k], zz[:, k], density[:, k]
-        n = sums[0]
-        started = n > 0
-        with np.errstate(divide='ignore', invalid='ignore'):
-            gap = r - last_r > max_gap_m
+    with np.errstate(divide='ignore', invalid='ignore'):  # empty lines give NaN: never true
+        for k in range(n_count):
+            has = present[:, k]
+            if not has.any():
+                continue
+            r, z, rho = rr[:, k], zz[:, k], density[:, k]
+            n = sums[0]
+            started = has & (n > 0)
+            dr, rise = r - last_r, z - last_z
+            gap = dr > max_gap_m
             ratio = rho / last_rho
-            jump = (ratio > max_density_jump) | (ratio < 1.0 / max_density_jump)
+            jump = (ratio > high_density) | (ratio < low_density)
             alpha, beta = _fit_from_sums(*sums, variance_ratio)
-            multi = n >= 2
-            dist = np.abs(z - alpha - beta * r) / np.sqrt(1.0 + beta * beta)
-            far = multi & (dist > max_distance_m)
+            far = (n >= 2) & (np.abs(z - alpha - beta * r) / np.sqrt(1.0 + beta * beta)
+                              > max_distance_m)
             # slope of the line if this candidate joins it (two-point chord for one-point lines)
-            trial = sums + np.stack([np.ones(m_count), r, z, r * r, z * z, r * z])
-            _, beta_new = _fit_from_sums(*trial, variance_ratio)
+            _, beta_new = _fit_from_sums(*(sums + moments[:, :, k]), variance_ratio)
             steep = np.abs(beta_new) > max_slope
-        critical = has & started & (gap | jump | far | steep)
-        with np.errstate(divide='ignore', invalid='ignore'):
-            rise = z - last_z
-            chord = rise / np.maximum(r - last_r, 1e-6)
-        step_up = has & started & (rise > step_up_m) & (chord > max_slope)
-        step_down = has & started & (rise < -step_up_m)
-        enter = step_up & ~elevated_now
-        line_slope = np.where(n >= 2, beta, 0.0)
-        base_r = np.where(enter, last_r, base_r)
-        base_z = np.where(enter, last_z, base_z)
-        base_slope = np.where(enter, np.nan_to_num(line_slope, posinf=0.0, neginf=0.0), base_slope)
-        back_down = z <= base_z + base_slope * (r - base_r) + step_up_m
-        leave = has & elevated_now & (step_down | back_down | gap)
-        elevated_now = (elevated_now | enter) & ~leave
-        elevated[:, k] = has & elevated_now
-        new_line = has & (~started | critical)
-        n_new = int(np.count_nonzero(new_line))
-        current_line[new_line] = np.arange(next_line, next_line + n_new)
-        next_line += n_new
-        sums[:, new_line] = 0.0
-        sums[:, has] += np.stack([np.ones(m_count), r, z, r * r, z * z, r * z])[:, has]
-        line_id[has, k] = current_line[has]
-        is_critical[:, k] = critical
-        last_r = np.where(has, r, last_r)
-        last_z = np.where(has, z, last_z)
-        last_rho = np.where(has, rho, last_rho)
+            critical = started & (gap | jump | far | steep)
+
+            chord = rise / np.maximum(dr, 1e-6)
+            step_up = started & (rise > step_up_m) & (chord > max_slope)
+            enter = step_up & ~elevated_now
+            if enter.any():
+                line_slope = np.where((n >= 2) & np.isfinite(beta), beta, 0.0)
+                base_r = np.where(enter, last_r, base_r)
+                base_z = np.where(enter, last_z, base_z)
+                base_slope = np.where(enter, line_slope, base_slope)
+            if elevated_now.any():
+                back_down = z <= base_z + base_slope * (r - base_r) + step_up_m
+                leave = has & elevated_now & ((rise < -step_up_m) | back_down | gap)
+                elevated_now = (elevated_now | enter) & ~leave
+            else:
+                elevated_now = enter
+            elevated[:, k] = has & elevated_now
+
+            new_line = has & ~(n > 0) | critical
+            n_new = int(np.count_nonzero(new_line))
+            current_line[new_line] = np.arange(next_line, next_line + n_new)
+            next_line += n_new
+            sums = np.where(new_line, 0.0, sums) + moments[:, :, k]
+            line_id[has, k] = current_line[has]
+            is_critical[:, k] = critical
+            last_r = np.where(has, r, last_r)
+            last_z = np.where(has, z, last_z)
+            last_rho = np.where(has, rho, last_rho)
 
     # Final fit of every line from its members (bincount over line ids).
     ids = line_id[present]

@@ -30,7 +30,7 @@ class SegmenterParams:
     num_segments: int = _param(
         120, 'M: number of angular segments of the radial grid (each 360/M degrees wide)', 8, 1440)
     num_bins: int = _param(
-        32, 'N: radial bins per segment, spread evenly between that segment\'s own r_min and '
+        24, 'N: radial bins per segment, spread evenly between that segment\'s own r_min and '
         'r_max (the paper\'s "divided unevenly" grid)', 4, 512)
     density_slices: int = _param(
         4, 'j: vertical slices per bin used for the density-like value rho~ (count/area averaged '

@@ -67,9 +67,9 @@ def segment_of(x: np.ndarray, y: np.ndarray, num_segments: int) -> np.ndarray:
     """Angular segment index in [0, M) of each point; segment 0 starts at azimuth -pi."""
     theta = np.arctan2(y, x)
     scale = np.asarray(num_segments / (2.0 * np.pi), dtype=theta.dtype)  # keep float32 float32
-    seg = ((theta + np.asarray(np.pi, dtype=theta.dtype)) * scale).astype(np.intp)
+    seg = ((theta + np.asarray(np.pi, dtype=theta.dtype)) * scale).astype(np.int32)
     # arctan2 can return exactly +pi, which would land in segment M: clip, never wrap silently.
-    return np.clip(seg, 0, num_segments - 1)
+    return np.minimum(seg, num_segments - 1, out=seg)
 
 
 def build_grid(x: np.ndarray, y: np.ndarray, z: np.ndarray, num_segments: int,
@@ -98,9 +98,13 @@ def build_grid(x: np.ndarray, y: np.ndarray, z: np.ndarray, num_segments: int,
     # per-point arithmetic in the input's precision (float32 from drivers: half the traffic)
     inv_width = (1.0 / width).astype(r.dtype)
     position = (r - r_min.astype(r.dtype)[seg]) * inv_width[seg]
-    bins = np.minimum(position.astype(np.intp), n_count - 1)  # r == r_max: outer edge
-    fraction = np.minimum(position - bins, 1.0)
-    key = seg * n_count + bins
+    floor = np.floor(position)
+    fraction = np.minimum(position - floor, 1.0)  # r == r_max: 1.0 in the last bin, below
+    bins = floor.astype(np.int32)
+    last = bins >= n_count  # only r == r_max (or round-off just below it) lands here
+    bins[last] = n_count - 1
+    fraction[last] = 1.0
+    key = seg * np.int32(n_count) + bins
 
     size = m_count * n_count
     count = np.bincount(key, minlength=size)

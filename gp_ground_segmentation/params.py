@@ -82,12 +82,15 @@ class SegmenterParams:
     sigma_f_max_m: float = _param(20.0, 'upper bound of sigma_f during learning (m)', 1e-3, 1e3)
     length_scale_gain_min: float = _param(0.05, 'lower bound of a during learning (m per unit d)', 1e-4, 1e3)
     length_scale_gain_max: float = _param(5.0, 'upper bound of a during learning (m per unit d)', 1e-3, 1e5)
-    sigma_n_min_m: float = _param(0.005, 'lower bound of sigma_n during learning (m)', 1e-5, 10.0)
+    sigma_n_min_m: float = _param(0.02, 'lower bound of sigma_n during learning (m)', 1e-5, 10.0)
     sigma_n_max_m: float = _param(2.0, 'upper bound of sigma_n during learning (m)', 1e-4, 100.0)
     optimizer_max_evaluations: int = _param(
         2, 'cap on marginal-likelihood evaluations (one whole-frame factorisation each) spent '
         'on learning theta per frame, warm-started from the previous frame; 0 freezes theta',
         0, 1000)
+    optimizer_max_step_ratio: float = _param(
+        1.5, 'after the first frame each hyperparameter may change by at most this factor per '
+        'frame (a trust region: one odd frame cannot throw theta to its bounds)', 1.01, 1e6)
     optimizer_first_frame_evaluations: int = _param(
         40, 'the same cap for the first frame (cold start)', 0, 10000)
     outlier_residual_m: float = _param(

@@ -299,7 +299,12 @@ class GroundSegmenter:
                 sol = gp.solve(theta)
             iterations = (p.optimizer_max_evaluations if self._has_learned
                           else p.optimizer_first_frame_evaluations)
-            new_theta, info = gp.fit(theta, self._bounds(), iterations)
+            bounds = self._bounds()
+            if self._has_learned:  # trust region: theta moves at most x/÷ step ratio a frame
+                ratio = p.optimizer_max_step_ratio
+                bounds = [(max(lo, t / ratio), min(hi, t * ratio))
+                          for t, (lo, hi) in zip(theta, bounds)]
+            new_theta, info = gp.fit(theta, bounds, iterations)
             stats['optimizer_iterations'] = info['iterations']
             stats['optimizer_failures'] = int(info['failed'])
             if iterations > 0 and not info['failed']:

@@ -257,3 +257,20 @@ def test_details_are_consistent(scans):
     z = scan.points[d.valid_index, 2]
     recomputed = z - result.ground_height[d.valid_index] <= d.threshold + 1e-6
     assert (recomputed == result.ground_mask[d.valid_index]).mean() > 0.9999
+
+
+def test_theta_stays_inside_bounds_when_scenes_alternate(scans):
+    """Regression: a flat frame then a curb frame once threw theta into its bounds' corner."""
+    seg = GroundSegmenter()
+    p = seg.params
+    seg.segment(scans['hill'].points)  # the cold start may move theta anywhere in bounds
+    for _ in range(3):
+        for name in ('flat', 'crowned_curb', 'ramp15'):
+            previous = seg.hyperparameters
+            result = seg.segment(scans[name].points)
+            theta = seg.hyperparameters
+            ratios = np.array(theta) / np.array(previous)
+            assert np.all(ratios <= p.optimizer_max_step_ratio * (1 + 1e-9))
+            assert np.all(ratios >= 1 / p.optimizer_max_step_ratio * (1 - 1e-9))
+            assert truth_metrics(result.ground_mask, scans[name].is_ground)['recall'] > 0.95
+    assert theta.sigma_n < p.sigma_n_max_m and theta.sigma_f < p.sigma_f_max_m

@@ -1,0 +1,299 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Parameters of the ROS 2 node: the segmenter's fields plus the node-only ones, and YAML loading.
+
+One source of truth: the segmenter parameters come from ``describe_params()`` (the dataclass
+metadata), the node-only ones from ``NODE_PARAMS`` below. The node declares exactly these, the
+shipped ``config/params.yaml`` lists exactly these (a test checks it), and ``load_params_file``
+reads a ROS 2 parameter file with the same strict typing rules as rclpy, so the offline tools
+(bag replay) and the node accept and reject the same files.
+
+ROS typing rules followed here (rclpy raises ``InvalidParameterTypeException`` otherwise): a double
+parameter must be written with a decimal point (``80.0``, not ``80``), an integer without one, a
+bool as ``true``/``false``. The errors say which key and which type was expected.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import re
+import textwrap
+from pathlib import Path
+
+from .params import SegmenterParams, describe_params
+
+__all__ = ['NODE_NAME', 'NODE_PARAMS', 'ParameterConfigError', 'all_param_specs',
+           'check_param_value', 'describe_node_params', 'load_params_file',
+           'node_param_defaults', 'render_params_table', 'render_params_yaml', 'split_params',
+           'validate_node_params']
+
+NODE_NAME = 'ground_segmentation'
+
+# Node-only parameters (not part of the segmenter): name -> spec, same keys as describe_params().
+NODE_PARAMS = {
+    'processing_budget_ms': {
+        'default': 100.0, 'type': 'float', 'min': 0.001, 'max': 1e6, 'read_only': False,
+        'description': 'processing time budget per frame (ms, decode + segment + encode); '
+                       'diagnostics go WARN when the windowed mean exceeds it'},
+    'queue_size': {
+        'default': 1, 'type': 'int', 'min': 1, 'max': 100, 'read_only': True,
+        'description': 'size of the latest-wins slot between the subscription and the worker '
+                       '(frames); when full the oldest waiting frame is dropped and counted'},
+    'diagnostics_period_s': {
+        'default': 1.0, 'type': 'float', 'min': 0.01, 'max': 3600.0, 'read_only': False,
+        'description': 'period of the DiagnosticArray on /diagnostics (s)'},
+    'diagnostics_window': {
+        'default': 50, 'type': 'int', 'min': 1, 'max': 100000, 'read_only': False,
+        'description': 'number of most recent frames over which timings (mean/p95/max), '
+                       'input rate and drops are reported (frames)'},
+}
+
+# Parameters every rclpy node has or may get from rclpy itself; a params file may set them.
+_ROS_BUILTIN_PARAMS = {'use_sim_time': 'bool', 'start_type_description_service': 'bool'}
+_ROS_BUILTIN_PREFIXES = ('qos_overrides.',)
+
+_TYPE_NAMES = {'float': 'a double (write it with a decimal point, e.g. 80.0)',
+               'int': 'an integer (no decimal point)', 'bool': 'a bool (true/false)'}
+
+
+class ParameterConfigError(ValueError):
+    """A parameter file or override that names an unknown key or gives a bad value/type."""
+
+
+def describe_node_params() -> list[dict]:
+    """One dict per node-only parameter: name, default, type, description, min, max, read_only."""
+    return [dict(name=name, **spec) for name, spec in NODE_PARAMS.items()]
+
+
+def all_param_specs() -> dict:
+    """name -> spec for every parameter the node declares (segmenter fields first)."""
+    specs = {}
+    for row in describe_params():
+        specs[row['name']] = dict(row, read_only=False)
+    for row in describe_node_params():
+        specs[row['name']] = row
+    return specs
+
+
+def node_param_defaults() -> dict:
+    """Node-only parameters with their defaults."""
+    return {name: spec['default'] for name, spec in NODE_PARAMS.items()}
+
+
+def _type_of(value) -> str | None:
+    if isinstance(value, bool):
+        return 'bool'
+    if isinstance(value, int):
+        return 'int'
+    if isinstance(value, float):
+        return 'float'
+    return None
+
+
+def check_param_value(name: str, value, specs: dict | None = None) -> None:
+    """Raise ParameterConfigError unless ``value`` has the declared type and lies in range."""
+    specs = all_param_specs() if specs is None else specs
+    if name not in specs:
+        raise ParameterConfigError(
+            f"unknown parameter '{name}' (known: {', '.join(sorted(specs))})")
+    spec = specs[name]
+    got = _type_of(value)
+    if got != spec['type']:
+        ros_names = {'float': 'double', 'int': 'integer', 'bool': 'bool'}
+        shown = type(value).__name__ if got is None else ros_names[got]
+        raise ParameterConfigError(
+            f"parameter '{name}': expected {_TYPE_NAMES[spec['type']]}, got {shown} {value!r}")
+    if spec['type'] == 'bool':
+        return
+    if not math.isfinite(value):
+        raise ParameterConfigError(f"parameter '{name}': must be finite, got {value!r}")
+    low, high = spec.get('min'), spec.get('max')
+    if (low is not None and value < low) or (high is not None and value > high):
+        raise ParameterConfigError(
+            f"parameter '{name}': {value!r} is outside [{low}, {high}]")
+
+
+def split_params(values: dict) -> tuple[dict, dict]:
+    """Split a flat name -> value dict into (segmenter fields, node-only params)."""
+    seg_names = {f.name for f in dataclasses.fields(SegmenterParams)}
+    seg = {k: v for k, v in values.items() if k in seg_names}
+    node = {k: v for k, v in values.items() if k in NODE_PARAMS}
+    return seg, node
+
+
+def validate_node_params(node_params: dict) -> dict:
+    """Check node-only params (types and ranges); return a full dict with defaults filled in."""
+    out = node_param_defaults()
+    for name, value in node_params.items():
+        if name not in NODE_PARAMS:
+            raise ParameterConfigError(f"unknown node parameter '{name}'")
+        check_param_value(name, value, {n: dict(s) for n, s in NODE_PARAMS.items()})
+        out[name] = value
+    return out
+
+
+def _flatten(prefix: str, tree: dict, out: dict, where: str) -> None:
+    """ROS joins nested dicts under ros__parameters with '.'."""
+    for key, value in tree.items():
+        name = f'{prefix}.{key}' if prefix else str(key)
+        if isinstance(value, dict):
+            _flatten(name, value, out, where)
+        else:
+            out[name] = value
+
+
+def _node_sections(doc: dict, path: tuple = ()):
+    """Yield (node path, ros__parameters dict) for every section of a ROS 2 params file."""
+    for key, value in doc.items():
+        if not isinstance(value, dict):
+            raise ParameterConfigError(
+                f"'{'/'.join(path + (str(key),))}': expected a mapping (node name -> "
+                f"ros__parameters), got {type(value).__name__}")
+        if 'ros__parameters' in value:
+            params = value['ros__parameters']
+            if params is None:
+                params = {}
+            if not isinstance(params, dict):
+                raise ParameterConfigError(
+                    f"'{key}/ros__parameters' must be a mapping of parameter names to values")
+            others = [k for k in value if k != 'ros__parameters']
+            if others:
+                raise ParameterConfigError(
+                    f"'{key}': unexpected key(s) {others} beside ros__parameters")
+            yield path + (str(key),), params
+        else:
+            yield from _node_sections(value, path + (str(key),))
+
+
+def _matches(section_path: tuple, node_name: str, namespace: str) -> bool:
+    """rcl's rule: the key is a fully qualified node name ('/' prepended if missing), where
+    '**' matches any number of namespace levels (zero included) and '*' one token."""
+    tokens = [t for p in section_path for t in str(p).split('/') if t]
+    regex = ''
+    for token in tokens:
+        if token == '**':
+            regex += '(?:/[^/]+)*'
+        else:
+            regex += '/' + '[^/]*'.join(re.escape(part) for part in token.split('*'))
+    ns = namespace.strip('/')
+    fqn = ('/' + ns if ns else '') + '/' + node_name
+    return re.fullmatch(regex, fqn) is not None
+
+
+def load_params_file(path, node_name: str = NODE_NAME, namespace: str = '/'):
+    """Read a ROS 2 parameter YAML file; return ``(SegmenterParams, node_params dict)``.
+
+    Sections whose key matches the node (``ground_segmentation``, ``/ground_segmentation``,
+    ``/**``, ``/**/ground_segmentation``, ...) are merged in file order, later ones winning,
+    as rcl does. Every key under ``ros__parameters`` must be a parameter of this node (or
+    ``use_sim_time`` / ``qos_overrides.*``); an unknown key, a wrong type (``80`` for a double)
+    or an out-of-range value raises ParameterConfigError (a ValueError) naming the key.
+    Node params missing from the file get their defaults.
+    """
+    import yaml  # local: the core does not need PyYAML
+
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise ParameterConfigError(f'cannot read parameter file {path}: {exc}') from None
+    try:
+        doc = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise ParameterConfigError(f'{path}: not valid YAML: {exc}') from None
+    if doc is None:
+        doc = {}
+    if not isinstance(doc, dict):
+        raise ParameterConfigError(f'{path}: top level must be a mapping of node names')
+    values: dict = {}
+    matched = False
+    for section, params in _node_sections(doc):
+        if not _matches(section, node_name, namespace):
+            continue
+        matched = True
+        _flatten('', params, values, str(path))
+    if doc and not matched:
+        raise ParameterConfigError(
+            f"{path}: no section for node '{node_name}' (use '{node_name}:' or '/**:' with "
+            f"'ros__parameters:' under it)")
+    specs = all_param_specs()
+    for name, value in values.items():
+        if name in _ROS_BUILTIN_PARAMS or name.startswith(_ROS_BUILTIN_PREFIXES):
+            continue
+        try:
+            check_param_value(name, value, specs)
+        except ParameterConfigError as exc:
+            raise ParameterConfigError(f'{path}: {exc}') from None
+    seg_values, node_values = split_params(values)
+    try:
+        seg = SegmenterParams(**seg_values).validate()
+    except ValueError as exc:
+        raise ParameterConfigError(f'{path}: {exc}') from None
+    return seg, validate_node_params(node_values)
+
+
+def _yaml_scalar(value) -> str:
+    """A YAML literal that ROS reads back with the same type (doubles always with a '.')."""
+    if isinstance(value, bool):
+        return 'true' if value else 'false'
+    if isinstance(value, int):
+        return str(value)
+    text = repr(float(value))
+    if 'e' in text or 'E' in text:  # PyYAML (YAML 1.1) reads '1e-06' as a string
+        text = f'{value:.12f}'.rstrip('0')
+        if text.endswith('.'):
+            text += '0'
+    return text
+
+
+def _range_text(spec: dict) -> str:
+    low, high = spec.get('min'), spec.get('max')
+    if low is None and high is None:
+        return ''
+    return f' [{_yaml_scalar(low) if low is not None else "-inf"}, ' \
+           f'{_yaml_scalar(high) if high is not None else "inf"}]'
+
+
+def render_params_yaml(node_name: str = NODE_NAME) -> str:
+    """The text of config/params.yaml: every parameter with its default and a comment.
+
+    ``python -c "from gp_ground_segmentation.config import render_params_yaml as r;
+    print(r(), end='')" > config/params.yaml`` regenerates the shipped file.
+    """
+    lines = [
+        '# Parameters of the gp_ground_segmentation node (defaults). Generated by',
+        '# gp_ground_segmentation.config.render_params_yaml(); test_config.py checks this file',
+        '# lists exactly the declared parameters with their defaults.',
+        '# Use:  ros2 run gp_ground_segmentation ground_segmentation_node --ros-args \\',
+        '#         -r points:=/velodyne_points --params-file config/params.yaml',
+        '# Types are strict (as in rclpy): doubles need a decimal point (80.0, not 80).',
+        '# Optional QoS overrides of the outputs, e.g. best-effort ground cloud:',
+        '#   qos_overrides:',
+        '#     /ground:',
+        '#       publisher: {reliability: best_effort, depth: 1}',
+        f'{node_name}:',
+        '  ros__parameters:',
+    ]
+    sections = [('segmenter (GroundSegmenter / SegmenterParams)', describe_params()),
+                ('node only', describe_node_params())]
+    for title, rows in sections:
+        lines.append(f'    # --- {title} ---')
+        for row in rows:
+            ro = ', read-only at run time' if row.get('read_only') else ''
+            comment = f"{row['description']}; {row['type']}{_range_text(row)}{ro}"
+            lines.extend('    # ' + part for part in textwrap.wrap(comment, 94))
+            lines.append(f"    {row['name']}: {_yaml_scalar(row['default'])}")
+    return '\n'.join(lines) + '\n'
+
+
+def render_params_table() -> str:
+    """A Markdown table of every parameter (for the README)."""
+    out = ['| parameter | type | default | range | description |', '|---|---|---|---|---|']
+    for row in describe_params() + describe_node_params():
+        rng = _range_text(row).strip()
+        desc = row['description'].replace('|', '\\|')
+        if row.get('read_only'):
+            desc += ' (read-only at run time)'
+        out.append(f"| `{row['name']}` | {row['type']} | `{_yaml_scalar(row['default'])}` | "
+                   f'{rng} | {desc} |')
+    return '\n'.join(out) + '\n'

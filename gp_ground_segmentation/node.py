@@ -1,0 +1,346 @@
+# SPDX-License-Identifier: Apache-2.0
+"""ROS 2 node: PointCloud2 on ``points`` -> ground and obstacle PointCloud2 + /diagnostics.
+
+Threading: the subscription callback only puts the newest message into a bounded latest-wins slot
+(``collections.deque(maxlen=queue_size)`` under a ``threading.Condition``); when the slot is full
+the oldest waiting frame is dropped and counted, never queued. A worker thread takes frames from
+the slot, runs ``pipeline.process_cloud`` (decode -> segment -> two byte-exact subsets) and
+publishes. So the executor stays responsive (parameter services, diagnostics timer) while a frame
+is being processed. No exception escapes a callback or the worker: failures are logged on one
+throttled line, counted and reported in diagnostics, and the node goes on with the next frame.
+
+Topics (relative names; remap e.g. ``-r points:=/velodyne_points``):
+  points     (sub) sensor_msgs/PointCloud2, qos_profile_sensor_data (best effort, keep last 5):
+             a RELIABLE subscriber would receive nothing from best-effort LiDAR drivers.
+  ground     (pub) sensor_msgs/PointCloud2, RELIABLE, VOLATILE, keep last 1.
+  obstacles  (pub) same QoS as ground.
+  /diagnostics (pub) diagnostic_msgs/DiagnosticArray, every diagnostics_period_s.
+Output QoS: a RELIABLE publisher matches both RELIABLE subscribers (RViz's and ros2 bag record's
+default) and BEST_EFFORT ones, whereas a BEST_EFFORT publisher is invisible to RELIABLE
+subscribers; depth 1 keeps the latest-wins rule downstream (a slow subscriber never makes us
+buffer old clouds); VOLATILE so no stale cloud is replayed to late joiners. All three topics
+accept ``qos_overrides`` (history, depth, reliability) from the parameter file.
+
+Parameters: every ``SegmenterParams`` field and the node-only ones of ``config.NODE_PARAMS`` are
+declared with a ParameterDescriptor (description with units, numeric range). At start-up an
+unknown parameter name, a wrong type or a bad value in the parameter file raises
+``ParameterConfigError`` naming it (main() logs it and exits with status 1). At run time
+``ros2 param set`` is validated in the on-set callback (a ``SegmenterParams.replace`` candidate,
+so cross-field rules apply too) and applied in the post-set callback; the worker switches to the
+new segmenter parameters at the start of the next frame, never mid-frame.
+"""
+
+from __future__ import annotations
+
+import sys
+import threading
+from collections import deque
+
+import rclpy
+from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
+                                ParameterType, SetParametersResult)
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.exceptions import ParameterException
+from rclpy.node import Node
+from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
+                       qos_profile_sensor_data)
+from rclpy.qos_overriding_options import QoSOverridingOptions
+from diagnostic_msgs.msg import DiagnosticArray
+from sensor_msgs.msg import PointCloud2
+
+from .cloud import CloudFormatError
+from .config import (NODE_NAME, NODE_PARAMS, ParameterConfigError, all_param_specs,
+                     check_param_value, split_params)
+from .diagnostics import ProcessingWindow, diagnostics_array, diagnostics_status
+from .params import SegmenterParams
+from .pipeline import process_cloud
+from .segmenter import GroundSegmenter
+
+__all__ = ['GroundSegmentationNode', 'OUTPUT_QOS', 'main']
+
+OUTPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                        reliability=ReliabilityPolicy.RELIABLE,
+                        durability=DurabilityPolicy.VOLATILE)
+DIAGNOSTICS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                             reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.VOLATILE)
+_BUILTIN_PARAMS = ('use_sim_time', 'start_type_description_service')
+_BUILTIN_PREFIXES = ('qos_overrides.',)
+_LOG_THROTTLE_S = 5.0
+_TYPES = {'float': ParameterType.PARAMETER_DOUBLE, 'int': ParameterType.PARAMETER_INTEGER,
+          'bool': ParameterType.PARAMETER_BOOL}
+
+
+def _descriptor(spec: dict) -> ParameterDescriptor:
+    """ParameterDescriptor with description (units), type and the range from the spec."""
+    desc = ParameterDescriptor(name=spec['name'], type=_TYPES[spec['type']],
+                               description=spec['description'],
+                               read_only=bool(spec.get('read_only', False)))
+    low, high = spec.get('min'), spec.get('max')
+    if spec['type'] == 'float' and low is not None and high is not None:
+        desc.floating_point_range = [FloatingPointRange(from_value=float(low),
+                                                        to_value=float(high), step=0.0)]
+    elif spec['type'] == 'int' and low is not None and high is not None:
+        desc.integer_range = [IntegerRange(from_value=int(low), to_value=int(high), step=1)]
+    return desc
+
+
+def _one_line(text: str, limit: int = 300) -> str:
+    text = ' '.join(str(text).split())
+    return text if len(text) <= limit else text[:limit - 3] + '...'
+
+
+class GroundSegmentationNode(Node):
+    """Ground/obstacle split of LiDAR clouds with a Gaussian-process ground model."""
+
+    def __init__(self, segmenter_factory=GroundSegmenter, **node_kwargs):
+        """``segmenter_factory(params) -> segmenter`` (default GroundSegmenter); ``node_kwargs``
+        go to rclpy Node (context, cli_args, parameter_overrides, namespace, ...)."""
+        super().__init__(NODE_NAME, **node_kwargs)
+        self._segmenter_factory = segmenter_factory
+        self._worker = None
+        self._stopping = False
+        self._destroyed = False
+        try:
+            self._setup()
+        except BaseException:
+            self._stop_worker()
+            super().destroy_node()
+            raise
+
+    # --- construction ----------------------------------------------------------------------
+    def _check_overrides(self) -> None:
+        """Fail fast on a parameter file/override naming an unknown key or giving a bad value.
+
+        rclpy silently ignores overrides for parameters that are never declared; a typo in the
+        YAML would then leave a default in force unnoticed, so it is an error here.
+        """
+        for name, param in sorted(self._parameter_overrides.items()):
+            if name in _BUILTIN_PARAMS or name.startswith(_BUILTIN_PREFIXES):
+                continue
+            check_param_value(name, param.value, self._specs)
+
+    def _setup(self) -> None:
+        self._specs = all_param_specs()
+        self._check_overrides()
+        for name, spec in self._specs.items():
+            self.declare_parameter(name, spec['default'], _descriptor(spec))
+        values = {name: self.get_parameter(name).value for name in self._specs}
+        seg_values, node_values = split_params(values)
+        try:
+            self._declared_params = SegmenterParams(**seg_values).validate()
+        except ValueError as exc:
+            raise ParameterConfigError(str(exc)) from None
+        self._budget_ms = float(node_values['processing_budget_ms'])
+        self._diag_period_s = float(node_values['diagnostics_period_s'])
+        queue_size = int(node_values['queue_size'])
+
+        self.window = ProcessingWindow(int(node_values['diagnostics_window']))
+        self._segmenter = self._segmenter_factory(self._declared_params)
+        self._pending_params = None
+        self._cond = threading.Condition()
+        self._slot = deque(maxlen=queue_size)
+
+        self._pub_ground = self.create_publisher(
+            PointCloud2, 'ground', OUTPUT_QOS,
+            qos_overriding_options=QoSOverridingOptions.with_default_policies())
+        self._pub_obstacles = self.create_publisher(
+            PointCloud2, 'obstacles', OUTPUT_QOS,
+            qos_overriding_options=QoSOverridingOptions.with_default_policies())
+        self._pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', DIAGNOSTICS_QOS)
+        self._sub = self.create_subscription(
+            PointCloud2, 'points', self._on_cloud, qos_profile_sensor_data,
+            qos_overriding_options=QoSOverridingOptions.with_default_policies())
+        self._diag_timer = self.create_timer(self._diag_period_s, self._on_diag_timer)
+
+        self.add_on_set_parameters_callback(self._validate_params)
+        self.add_post_set_parameters_callback(self._apply_params)
+
+        self._worker = threading.Thread(target=self._worker_loop, name='ground_seg_worker',
+                                        daemon=True)
+        self._worker.start()
+        self.get_logger().info(
+            f"listening on '{self._sub.topic_name}', publishing '{self._pub_ground.topic_name}'"
+            f" and '{self._pub_obstacles.topic_name}' (slot {queue_size}, budget "
+            f'{self._budget_ms:g} ms)')
+
+    # --- public state (read-only views, for tests and tools) --------------------------------
+    @property
+    def segmenter_params(self) -> SegmenterParams:
+        """Parameters of the segmenter the worker is using now."""
+        return self._segmenter.params
+
+    @property
+    def segmenter(self):
+        """The segmenter object the worker uses (read it, do not call it from other threads)."""
+        return self._segmenter
+
+    @property
+    def declared_params(self) -> SegmenterParams:
+        """Segmenter parameters as last set (applied by the worker from the next frame on)."""
+        return self._declared_params
+
+    # --- subscription: hand over only ------------------------------------------------------
+    def _on_cloud(self, msg) -> None:
+        try:
+            self.window.record_received(getattr(getattr(msg, 'header', None), 'frame_id', None))
+            with self._cond:
+                if len(self._slot) == self._slot.maxlen:
+                    self.window.record_dropped(1)  # deque(maxlen) evicts the oldest on append
+                self._slot.append(msg)
+                self._cond.notify()
+        except Exception as exc:  # never let an exception out of an executor callback
+            self.get_logger().error(f'cloud callback failed: {_one_line(exc)}',
+                                    throttle_duration_sec=_LOG_THROTTLE_S)
+
+    # --- worker thread ---------------------------------------------------------------------
+    def _worker_loop(self) -> None:
+        while True:
+            with self._cond:
+                while not self._slot and not self._stopping:
+                    self._cond.wait()
+                if self._stopping:
+                    return
+                msg = self._slot.popleft()
+                pending, self._pending_params = self._pending_params, None
+            if pending is not None:
+                self._switch_segmenter(pending)
+            self._process(msg)
+
+    def _switch_segmenter(self, params: SegmenterParams) -> None:
+        """Between frames: keep the segmenter (and its warm-started theta) when it can take new
+        parameters (GroundSegmenter.set_params clips theta to the new bounds), else rebuild."""
+        try:
+            if hasattr(self._segmenter, 'set_params'):
+                self._segmenter.set_params(params)
+            else:
+                self._segmenter = self._segmenter_factory(params)
+        except Exception as exc:  # keep the old segmenter rather than stop processing
+            self.window.record_failure(f'cannot apply new parameters: {_one_line(exc)}', False)
+            self.get_logger().error(f'cannot apply new parameters: {_one_line(exc)}',
+                                    throttle_duration_sec=_LOG_THROTTLE_S)
+
+    def _process(self, msg) -> None:
+        frame_id = None
+        try:
+            frame_id = msg.header.frame_id
+            out = process_cloud(msg, self._segmenter)
+            self._pub_ground.publish(out.ground)
+            self._pub_obstacles.publish(out.obstacles)
+            self.window.record_frame(out, frame_id)
+        except CloudFormatError as exc:
+            text = _one_line(exc)
+            self.window.record_failure(text, True, frame_id)
+            self.get_logger().warning(f"bad input cloud (frame_id '{frame_id}'): {text}",
+                                      throttle_duration_sec=_LOG_THROTTLE_S)
+        except Exception as exc:
+            text = _one_line(f'{type(exc).__name__}: {exc}')
+            self.window.record_failure(text, False, frame_id)
+            if not self._stopping:
+                self.get_logger().error(f'frame processing failed: {text}',
+                                        throttle_duration_sec=_LOG_THROTTLE_S)
+
+    # --- diagnostics -----------------------------------------------------------------------
+    def _on_diag_timer(self) -> None:
+        try:
+            stale = max(5.0, 3.0 * self._diag_period_s)
+            status = diagnostics_status(self.window, budget_ms=self._budget_ms,
+                                        stale_after_s=stale)
+            self._pub_diag.publish(diagnostics_array([status],
+                                                     self.get_clock().now().to_msg()))
+        except Exception as exc:
+            self.get_logger().error(f'diagnostics failed: {_one_line(exc)}',
+                                    throttle_duration_sec=_LOG_THROTTLE_S)
+
+    # --- parameters ------------------------------------------------------------------------
+    def _split_changes(self, params):
+        seg, node = {}, {}
+        for p in params:
+            if p.name in NODE_PARAMS:
+                node[p.name] = p.value
+            elif p.name in self._specs:
+                seg[p.name] = p.value
+        return seg, node
+
+    def _validate_params(self, params) -> SetParametersResult:
+        """On-set: validate only (names we do not own are accepted, as rclpy recommends)."""
+        try:
+            seg, node = self._split_changes(params)
+            for name, value in list(seg.items()) + list(node.items()):
+                check_param_value(name, value, self._specs)
+            if seg:
+                self._declared_params.replace(**seg)
+            return SetParametersResult(successful=True)
+        except (ValueError, TypeError) as exc:
+            return SetParametersResult(successful=False, reason=_one_line(exc))
+        except Exception as exc:
+            return SetParametersResult(successful=False,
+                                       reason=_one_line(f'{type(exc).__name__}: {exc}'))
+
+    def _apply_params(self, params) -> None:
+        """Post-set: apply. The worker picks up segmenter changes at the next frame."""
+        try:
+            seg, node = self._split_changes(params)
+            if seg:
+                self._declared_params = self._declared_params.replace(**seg)
+                with self._cond:
+                    self._pending_params = self._declared_params
+            if 'processing_budget_ms' in node:
+                self._budget_ms = float(node['processing_budget_ms'])
+            if 'diagnostics_window' in node:
+                self.window.resize(int(node['diagnostics_window']))
+            if 'diagnostics_period_s' in node:
+                self._diag_period_s = float(node['diagnostics_period_s'])
+                self.destroy_timer(self._diag_timer)
+                self._diag_timer = self.create_timer(self._diag_period_s, self._on_diag_timer)
+        except Exception as exc:
+            self.get_logger().error(f'applying parameters failed: {_one_line(exc)}')
+
+    # --- shutdown --------------------------------------------------------------------------
+    def _stop_worker(self, timeout_s: float = 30.0) -> None:
+        self._stopping = True
+        cond = getattr(self, '_cond', None)
+        if cond is not None:
+            with cond:
+                cond.notify_all()
+        if self._worker is not None and self._worker is not threading.current_thread():
+            self._worker.join(timeout_s)
+            if self._worker.is_alive():
+                self.get_logger().warning(f'worker thread did not stop within {timeout_s} s')
+
+    def destroy_node(self):
+        """Stop and join the worker (it finishes the frame in progress), then destroy."""
+        if self._destroyed:
+            return
+        self._destroyed = True
+        self._stop_worker()
+        super().destroy_node()
+
+
+def main(args=None):
+    """Entry point of ``ros2 run gp_ground_segmentation ground_segmentation_node``."""
+    rclpy.init(args=args)
+    node = None
+    exit_code = 0
+    try:
+        # The executor exists before the node announces itself, so a Ctrl-C right after the
+        # 'listening' line never lands inside executor construction (an rclpy 7.1 __del__ race).
+        executor = SingleThreadedExecutor()
+        node = GroundSegmentationNode()
+        executor.add_node(node)
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except (ParameterConfigError, ParameterException) as exc:
+        rclpy.logging.get_logger(NODE_NAME).fatal(f'invalid parameters: {_one_line(exc, 1000)}')
+        exit_code = 1
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    if exit_code:
+        sys.exit(exit_code)
+
+
+if __name__ == '__main__':
+    main()

@@ -1,0 +1,90 @@
+# SPDX-License-Identifier: Apache-2.0
+"""One frame through the segmenter: PointCloud2 -> numpy -> GroundSegmenter -> two PointCloud2.
+
+This is the single code path shared by the ROS node and the offline bag replay, so that both
+publish exactly the same clouds and report the same timings. Nothing here needs ``rclpy.init()``.
+
+Output clouds keep the input header (stamp, frame_id), fields, point_step and byte order, and
+every selected point's bytes unchanged (``cloud.subset_cloud``), so intensity/ring/time survive.
+Invalid points (NaN/Inf or the (0, 0, 0) no-return value) go to neither output; they are counted
+in ``result.num_invalid``. Before returning, the split is checked: ground + obstacles + invalid
+must equal the input point count with no point in both, otherwise ``RuntimeError`` is raised and
+nothing should be published (never a split that silently misses points).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from .cloud import cloud_xyz, read_cloud, subset_cloud
+from .segmenter import SegmentationResult
+
+__all__ = ['FrameOutput', 'process_cloud', 'STAGES', 'frame_timings']
+
+# Stages reported in diagnostics, in pipeline order (segmenter stages from result.timings_ms).
+STAGES = ('decode', 'grid', 'lines', 'gp_fit', 'predict', 'label', 'encode', 'total')
+
+
+@dataclass
+class FrameOutput:
+    """Result of ``process_cloud`` for one input message."""
+
+    ground: object  # sensor_msgs/PointCloud2 (same type as the input), ground points
+    obstacles: object  # same, valid non-ground points
+    result: SegmentationResult
+    decode_ms: float  # PointCloud2 -> (N, 3) float64 (ms)
+    encode_ms: float  # both subset clouds built (ms)
+    total_ms: float = float('nan')  # wall time of process_cloud: decode + segment + encode (ms)
+
+    @property
+    def num_points(self) -> int:
+        return int(self.result.valid_mask.size)
+
+
+def frame_timings(out: FrameOutput) -> dict:
+    """stage -> ms for one frame: decode/encode/total from the pipeline, the rest from the core.
+
+    A core stage that the segmenter did not report is left out (not faked as 0).
+    """
+    timings = {'decode': out.decode_ms, 'encode': out.encode_ms, 'total': out.total_ms}
+    for stage in STAGES:
+        if stage not in timings and stage in out.result.timings_ms:
+            timings[stage] = float(out.result.timings_ms[stage])
+    if 'segment' not in timings and 'total' in out.result.timings_ms:
+        timings['segment'] = float(out.result.timings_ms['total'])
+    return timings
+
+
+def process_cloud(msg, segmenter) -> FrameOutput:
+    """Split ``msg`` (sensor_msgs/PointCloud2) into ground and obstacle clouds with ``segmenter``.
+
+    Raises ``cloud.CloudFormatError`` (a ValueError, one-line message) for an unusable layout
+    (missing x/y/z, data too short, ...), and RuntimeError if the split is inconsistent.
+    """
+    t0 = time.perf_counter()
+    points = read_cloud(msg)
+    xyz = cloud_xyz(points)
+    t1 = time.perf_counter()
+    result = segmenter.segment(xyz)
+    t2 = time.perf_counter()
+    n = xyz.shape[0]
+    ground_mask = np.asarray(result.ground_mask, dtype=bool)
+    obstacle_mask = np.asarray(result.obstacle_mask, dtype=bool)
+    if ground_mask.shape != (n,) or obstacle_mask.shape != (n,):
+        raise RuntimeError(f'segmenter returned masks of shape {ground_mask.shape}, '
+                           f'expected ({n},)')
+    n_ground = int(np.count_nonzero(ground_mask))
+    n_obstacles = int(np.count_nonzero(obstacle_mask))
+    if np.any(ground_mask & obstacle_mask) or n_ground + n_obstacles + result.num_invalid != n:
+        raise RuntimeError(
+            f'inconsistent split: {n_ground} ground + {n_obstacles} obstacles + '
+            f'{result.num_invalid} invalid != {n} points')
+    ground = subset_cloud(msg, ground_mask)
+    obstacles = subset_cloud(msg, obstacle_mask)
+    t3 = time.perf_counter()
+    return FrameOutput(ground=ground, obstacles=obstacles, result=result,
+                       decode_ms=(t1 - t0) * 1e3, encode_ms=(t3 - t2) * 1e3,
+                       total_ms=(t3 - t0) * 1e3)

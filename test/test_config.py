@@ -1,0 +1,140 @@
+# SPDX-License-Identifier: Apache-2.0
+"""config.py: the shipped params.yaml never drifts from the dataclass, and parameter files are
+read with ROS's strict rules (unknown key, wrong type, out of range -> error naming the key)."""
+
+import dataclasses
+
+import pytest
+import yaml
+from conftest import REPO
+
+from gp_ground_segmentation import SegmenterParams, describe_params
+from gp_ground_segmentation.config import (NODE_NAME, NODE_PARAMS, ParameterConfigError,
+                                           all_param_specs, load_params_file,
+                                           node_param_defaults, render_params_table,
+                                           render_params_yaml)
+
+PARAMS_YAML = REPO / 'config' / 'params.yaml'
+
+
+def _write(tmp_path, text, name='p.yaml'):
+    path = tmp_path / name
+    path.write_text(text)
+    return path
+
+
+def test_shipped_yaml_lists_exactly_all_params_with_defaults():
+    doc = yaml.safe_load(PARAMS_YAML.read_text())
+    assert list(doc) == [NODE_NAME]
+    values = doc[NODE_NAME]['ros__parameters']
+    expected = {f.name: f.default for f in dataclasses.fields(SegmenterParams)}
+    expected.update(node_param_defaults())
+    assert set(values) == set(expected)
+    for name, default in expected.items():
+        assert values[name] == default and type(values[name]) is type(default), name
+
+
+def test_shipped_yaml_is_the_generated_text():
+    # Regenerate with: python -c "from gp_ground_segmentation.config import render_params_yaml
+    # as r; print(r(), end='')" > config/params.yaml
+    assert PARAMS_YAML.read_text() == render_params_yaml()
+
+
+def test_every_param_has_a_comment_and_units_text():
+    text = PARAMS_YAML.read_text().splitlines()
+    for row in describe_params() + [dict(name=k, **v) for k, v in NODE_PARAMS.items()]:
+        idx = next(i for i, ln in enumerate(text) if ln.strip().startswith(row['name'] + ':'))
+        assert text[idx - 1].strip().startswith('#'), row['name']
+        assert row['description'], row['name']
+
+
+def test_load_shipped_file_gives_defaults():
+    seg, node = load_params_file(PARAMS_YAML)
+    assert seg == SegmenterParams()
+    assert node == node_param_defaults()
+    assert node == {'processing_budget_ms': 100.0, 'queue_size': 1, 'diagnostics_period_s': 1.0,
+                    'diagnostics_window': 50}
+
+
+@pytest.mark.parametrize('key', ['ground_segmentation', '/ground_segmentation', '/**',
+                                 '/**/ground_segmentation', '"*"'])
+def test_section_keys_that_match_the_node(tmp_path, key):
+    path = _write(tmp_path, f'{key}:\n  ros__parameters:\n    num_bins: 32\n'
+                            '    processing_budget_ms: 50.0\n')
+    seg, node = load_params_file(path)
+    assert seg.num_bins == 32 and seg.num_segments == SegmenterParams().num_segments
+    assert node['processing_budget_ms'] == 50.0 and node['queue_size'] == 1
+
+
+def test_sections_merge_in_order_and_other_nodes_are_ignored(tmp_path):
+    path = _write(tmp_path, '/**:\n  ros__parameters:\n    num_bins: 32\n    use_sim_time: true\n'
+                            'other_node:\n  ros__parameters:\n    whatever: 1\n'
+                            'ground_segmentation:\n  ros__parameters:\n    num_bins: 64\n')
+    seg, _ = load_params_file(path)
+    assert seg.num_bins == 64
+
+
+def test_namespaced_section(tmp_path):
+    path = _write(tmp_path, 'robot:\n  ground_segmentation:\n    ros__parameters:\n'
+                            '      num_bins: 16\n')
+    assert load_params_file(path, namespace='/robot')[0].num_bins == 16
+    with pytest.raises(ParameterConfigError, match='no section'):
+        load_params_file(path)
+
+
+@pytest.mark.parametrize('body, words', [
+    ('num_bns: 40', ['num_bns', 'unknown']),
+    ('max_threshold_m: 1', ['max_threshold_m', 'double', 'decimal']),
+    ('num_bins: 40.0', ['num_bins', 'integer']),
+    ('density_in_flat_branch: 1', ['density_in_flat_branch', 'bool']),
+    ('num_bins: "40"', ['num_bins', 'str']),
+    ('num_bins: 2', ['num_bins', 'outside']),
+    ('queue_size: 0', ['queue_size', 'outside']),
+    ('processing_budget_ms: .nan', ['processing_budget_ms', 'finite']),
+    ('slope_floor: 0.5\n    slope_ceiling: 0.4', ['slope_floor']),
+    ('nested:\n      deep: 1.0', ['nested.deep']),
+])
+def test_bad_values_name_the_key(tmp_path, body, words):
+    path = _write(tmp_path, f'ground_segmentation:\n  ros__parameters:\n    {body}\n')
+    with pytest.raises(ParameterConfigError) as info:
+        load_params_file(path)
+    assert isinstance(info.value, ValueError)
+    for word in words:
+        assert word in str(info.value)
+    assert str(path) in str(info.value)
+
+
+def test_structure_errors(tmp_path):
+    with pytest.raises(ParameterConfigError, match='cannot read'):
+        load_params_file(tmp_path / 'missing.yaml')
+    with pytest.raises(ParameterConfigError, match='not valid YAML'):
+        load_params_file(_write(tmp_path, 'a: [1,\n'))
+    with pytest.raises(ParameterConfigError, match='mapping'):
+        load_params_file(_write(tmp_path, '- 1\n- 2\n'))
+    with pytest.raises(ParameterConfigError, match='beside ros__parameters'):
+        load_params_file(_write(tmp_path, 'ground_segmentation:\n  ros__parameters: {}\n'
+                                          '  extra: 1\n'))
+
+
+def test_qos_overrides_and_builtins_are_accepted(tmp_path):
+    path = _write(tmp_path, 'ground_segmentation:\n  ros__parameters:\n    use_sim_time: false\n'
+                            '    qos_overrides:\n      /ground:\n        publisher:\n'
+                            '          reliability: best_effort\n')
+    seg, node = load_params_file(path)
+    assert seg == SegmenterParams() and node == node_param_defaults()
+
+
+def test_specs_cover_both_sets_once():
+    specs = all_param_specs()
+    names = [r['name'] for r in describe_params()] + list(NODE_PARAMS)
+    assert list(specs) == names and len(set(names)) == len(names)
+    for spec in specs.values():
+        assert spec['type'] in ('int', 'float', 'bool') and spec['description']
+        if spec['type'] != 'bool':
+            assert spec['min'] <= spec['default'] <= spec['max'], spec['name']
+
+
+def test_params_table_has_a_row_per_param():
+    table = render_params_table().splitlines()
+    assert len(table) == 2 + len(all_param_specs())
+    assert all(line.count('|') >= 6 for line in table)

@@ -67,8 +67,9 @@ class SegmenterParams:
     slope_ceiling: float = _param(
         0.9, 'slopes are clipped to this (< 1) so log(1/g) stays positive', 0.05, 0.999)
     density_in_flat_branch: bool = _param(
-        True, 'divide the flat-branch length scale log(1/g_d) by rho~ too, so L is continuous at '
-        'g = g_d (the paper\'s formula omits it there)')
+        False, 'also divide the flat-branch length scale log(1/g_d) by rho~ (continuous in g at '
+        'g_d); False is the paper\'s formula, which scored slightly higher recall in '
+        'benchmarks/sweep_params.py')
     min_length_factor: float = _param(
         0.05, 'lower clip of the length-scale factor d_i = log(1/g_i)/rho_i (dimensionless; '
         'L_i = a*d_i in m)', 1e-4, 100.0)

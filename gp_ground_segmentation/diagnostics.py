@@ -12,8 +12,10 @@ Level rules (first match wins):
   STALE  no cloud received yet;
   ERROR  the most recent frame failed: bad input (CloudFormatError, message given) or a processing
          error;
-  WARN   mean total time > budget, frames dropped within the window, earlier failures within the
-         window, or no input for ``stale_after_s``;
+  WARN   the most recent frame was processed but its input looks wrong (``record_frame``
+         warnings: empty, no valid point, trailing bytes, empty frame_id, stamp going backwards,
+         field layout changed), mean total time > budget, frames dropped within the window,
+         earlier failures within the window, or no input for ``stale_after_s``;
   OK     otherwise.
 ``ProcessingWindow`` is thread-safe: the subscription callback, the worker thread and the timer
 all update or read it.
@@ -66,6 +68,9 @@ class ProcessingWindow:
         self.last_points = {}
         self.last_theta = None
         self.last_stats = {}
+        self.last_warnings = []  # input warnings of the most recent processed frame
+        self.frames_with_warnings = 0
+        self.last_warning = None
         self._make_deques(window)
 
     def _make_deques(self, window: int, old=None):
@@ -102,8 +107,13 @@ class ProcessingWindow:
             self.frames_dropped += int(count)
             self._outcomes.extend(['dropped'] * int(count))
 
-    def record_frame(self, out: FrameOutput, frame_id: str | None = None) -> None:
-        """A frame was processed successfully and its outputs published."""
+    def record_frame(self, out: FrameOutput, frame_id: str | None = None,
+                     warnings: list | None = None) -> None:
+        """A frame was processed successfully and its outputs published. ``warnings``: one-line
+        notes on its input (default ``out.warnings``); they make the status WARN until the next
+        frame."""
+        if warnings is None:
+            warnings = list(getattr(out, 'warnings', None) or [])
         res = out.result
         n = int(res.valid_mask.size)
         n_ground = int(np.count_nonzero(res.ground_mask))
@@ -120,6 +130,10 @@ class ProcessingWindow:
                                 'points_invalid': res.num_invalid}
             self.last_theta = res.hyperparameters
             self.last_stats = dict(res.stats)
+            self.last_warnings = list(warnings)
+            if warnings:
+                self.frames_with_warnings += 1
+                self.last_warning = '; '.join(warnings)
 
     def record_failure(self, message: str, bad_input: bool, frame_id: str | None = None) -> None:
         """A frame could not be processed (nothing was published for it)."""
@@ -151,6 +165,9 @@ class ProcessingWindow:
                 'last_frame_id': self.last_frame_id, 'last_error': self.last_error,
                 'last_outcome': self.last_outcome, 'last_points': dict(self.last_points),
                 'last_theta': self.last_theta, 'last_stats': dict(self.last_stats),
+                'last_warnings': list(self.last_warnings),
+                'frames_with_warnings': self.frames_with_warnings,
+                'last_warning': self.last_warning,
                 'seconds_since_input': (now - self.last_receive_time
                                         if self.last_receive_time is not None else None),
                 'window': self.window,
@@ -216,6 +233,8 @@ def diagnostics_status(window: ProcessingWindow, *, budget_ms: float, name: str 
     add('budget_ms', float(budget_ms))
     add('window_frames', snap['window'])
     add('last_error', snap['last_error'] or 'none')
+    add('frames_with_input_warnings', snap['frames_with_warnings'])
+    add('last_input_warning', snap['last_warning'] or 'none')
     for key, value in (extra or {}).items():
         add(key, value)
 
@@ -227,6 +246,8 @@ def diagnostics_status(window: ProcessingWindow, *, budget_ms: float, name: str 
         prefix = 'bad input' if snap['last_outcome'] == 'bad_input' else 'processing error'
         message = f"{prefix}: {snap['last_error']}"
     else:
+        if snap['last_warnings']:
+            warnings.append('input: ' + '; '.join(snap['last_warnings']))
         total = summary.get('total')
         if total is not None and total[0] > budget_ms:
             warnings.append(f'mean processing {total[0]:.1f} ms > budget {budget_ms:g} ms')

@@ -7,7 +7,11 @@ the oldest waiting frame is dropped and counted, never queued. A worker thread t
 the slot, runs ``pipeline.process_cloud`` (decode -> segment -> two byte-exact subsets) and
 publishes. So the executor stays responsive (parameter services, diagnostics timer) while a frame
 is being processed. No exception escapes a callback or the worker: failures are logged on one
-throttled line, counted and reported in diagnostics, and the node goes on with the next frame.
+line (at most once per 5 s per problem, with the count of suppressed repeats), counted and
+reported in diagnostics (ERROR with the CloudFormatError text for bad input), and the node goes
+on with the next frame. Usable but suspicious input (empty, no valid point, trailing bytes, empty
+frame_id, stamp going backwards, field layout changed) is processed, logged the same way and
+reported as a diagnostics WARN.
 
 Topics (relative names; remap e.g. ``-r points:=/velodyne_points``):
   points     (sub) sensor_msgs/PointCloud2, qos_profile_sensor_data (best effort, keep last 5):
@@ -32,9 +36,11 @@ new segmenter parameters at the start of the next frame, never mid-frame.
 
 from __future__ import annotations
 
+import re
 import sys
 import threading
-from collections import deque
+import time
+from collections import OrderedDict, deque
 
 import rclpy
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
@@ -85,6 +91,29 @@ def _descriptor(spec: dict) -> ParameterDescriptor:
     return desc
 
 
+def _layout_of(msg) -> tuple:
+    """What must stay the same between frames of one stream: fields, point_step, byte order."""
+    return (tuple((f.name, int(f.offset), int(f.datatype), int(f.count)) for f in msg.fields),
+            int(msg.point_step), bool(msg.is_bigendian))
+
+
+def _layout_text(layout: tuple) -> str:
+    fields, step, big = layout
+    return (' '.join(f'{n}@{o}:{d}x{c}' for n, o, d, c in fields)
+            + f' step {step}' + (' big-endian' if big else ''))
+
+
+def _stamp_s(msg) -> float:
+    stamp = msg.header.stamp
+    return float(stamp.sec) + 1e-9 * float(stamp.nanosec)
+
+
+def _problem_key(text: str) -> str:
+    """Throttling key of a log line: its text with the numbers blanked, so the same problem
+    (e.g. 'data has 793 bytes but ... 800 required') is one key whatever the sizes."""
+    return re.sub(r'[-+]?\d[\d.e+-]*', '#', text)
+
+
 def _one_line(text: str, limit: int = 300) -> str:
     text = ' '.join(str(text).split())
     return text if len(text) <= limit else text[:limit - 3] + '...'
@@ -101,6 +130,11 @@ class GroundSegmentationNode(Node):
         self._worker = None
         self._stopping = False
         self._destroyed = False
+        # Per-problem log throttling: key -> [last log time (monotonic s), suppressed count].
+        self._log_lock = threading.Lock()
+        self._log_times = OrderedDict()
+        self._last_layout = None  # layout of the last processed frame
+        self._last_stamp = None  # header stamp (s) of the last processed frame
         try:
             self._setup()
         except BaseException:
@@ -203,9 +237,12 @@ class GroundSegmentationNode(Node):
                     return
                 msg = self._slot.popleft()
                 pending, self._pending_params = self._pending_params, None
-            if pending is not None:
-                self._switch_segmenter(pending)
-            self._process(msg)
+            try:
+                if pending is not None:
+                    self._switch_segmenter(pending)
+                self._process(msg)
+            except Exception as exc:  # last line of defence: the worker must keep running
+                self.window.record_failure(_one_line(f'{type(exc).__name__}: {exc}'), False)
 
     def _switch_segmenter(self, params: SegmenterParams) -> None:
         """Between frames: keep the segmenter (and its warm-started theta) when it can take new
@@ -220,25 +257,76 @@ class GroundSegmentationNode(Node):
             self.get_logger().error(f'cannot apply new parameters: {_one_line(exc)}',
                                     throttle_duration_sec=_LOG_THROTTLE_S)
 
+    def _log_throttled(self, level: str, text: str) -> None:
+        """Log ``text`` (one line) at most once per _LOG_THROTTLE_S per problem (text with the
+        numbers blanked), so a stream of bad clouds gives one line per problem, not a flood,
+        while a different problem is still reported at once. Says how many were suppressed."""
+        key = _problem_key(text)
+        now = time.monotonic()
+        with self._log_lock:
+            entry = self._log_times.get(key)
+            if entry is not None and now - entry[0] < _LOG_THROTTLE_S:
+                entry[1] += 1
+                return
+            suppressed = entry[1] if entry is not None else 0
+            self._log_times[key] = [now, 0]
+            self._log_times.move_to_end(key)
+            while len(self._log_times) > 256:  # bounded: distinct problems are few
+                self._log_times.popitem(last=False)
+        if suppressed:
+            text += f' ({suppressed} more like this in the last {_LOG_THROTTLE_S:g} s)'
+        # One call site per severity: rclpy's logger remembers the severity of each call site
+        # and raises ValueError if one line logs at two severities.
+        try:
+            if level == 'error':
+                self.get_logger().error(text)
+            else:
+                self.get_logger().warning(text)
+        except Exception:  # logging must never take the worker down
+            pass
+
+    def _stream_warnings(self, msg) -> list:
+        """Input problems only visible across frames or in the header (cloud itself usable)."""
+        notes = []
+        if not msg.header.frame_id:
+            notes.append('empty header.frame_id (the cloud cannot be placed in TF)')
+        stamp = _stamp_s(msg)
+        if self._last_stamp is not None and stamp < self._last_stamp:
+            notes.append(f'header stamp went backwards by {self._last_stamp - stamp:.3f} s '
+                         f'(clock jump or bag loop?)')
+        layout = _layout_of(msg)
+        if self._last_layout is not None and layout != self._last_layout:
+            notes.append(f'field layout changed from [{_layout_text(self._last_layout)}] to '
+                         f'[{_layout_text(layout)}] (two publishers on the topic?)')
+        return notes
+
     def _process(self, msg) -> None:
         frame_id = None
         try:
             frame_id = msg.header.frame_id
             out = process_cloud(msg, self._segmenter)
+            notes = list(out.warnings)
+            try:
+                notes += self._stream_warnings(msg)
+                self._last_stamp, self._last_layout = _stamp_s(msg), _layout_of(msg)
+            except Exception as exc:  # a check must never cost the frame
+                notes.append(f'input check failed: {_one_line(exc)}')
             self._pub_ground.publish(out.ground)
             self._pub_obstacles.publish(out.obstacles)
-            self.window.record_frame(out, frame_id)
+            self.window.record_frame(out, frame_id, notes)
+            for note in notes:
+                self._log_throttled('warning',
+                                    f"suspicious input cloud (frame_id '{frame_id}'): {note}")
         except CloudFormatError as exc:
             text = _one_line(exc)
             self.window.record_failure(text, True, frame_id)
-            self.get_logger().warning(f"bad input cloud (frame_id '{frame_id}'): {text}",
-                                      throttle_duration_sec=_LOG_THROTTLE_S)
+            self._log_throttled('warning', f"bad input cloud (frame_id '{frame_id}'), "
+                                f'dropped: {text}')
         except Exception as exc:
             text = _one_line(f'{type(exc).__name__}: {exc}')
             self.window.record_failure(text, False, frame_id)
             if not self._stopping:
-                self.get_logger().error(f'frame processing failed: {text}',
-                                        throttle_duration_sec=_LOG_THROTTLE_S)
+                self._log_throttled('error', f'frame processing failed: {text}')
 
     # --- diagnostics -----------------------------------------------------------------------
     def _on_diag_timer(self) -> None:

@@ -15,14 +15,14 @@ nothing should be published (never a split that silently misses points).
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from .cloud import cloud_xyz, read_cloud, subset_cloud
 from .segmenter import SegmentationResult
 
-__all__ = ['FrameOutput', 'process_cloud', 'STAGES', 'frame_timings']
+__all__ = ['FrameOutput', 'process_cloud', 'input_warnings', 'STAGES', 'frame_timings']
 
 # Stages reported in diagnostics, in pipeline order (segmenter stages from result.timings_ms).
 STAGES = ('decode', 'grid', 'lines', 'gp_fit', 'predict', 'label', 'encode', 'total')
@@ -38,6 +38,9 @@ class FrameOutput:
     decode_ms: float  # PointCloud2 -> (N, 3) float64 (ms)
     encode_ms: float  # both subset clouds built (ms)
     total_ms: float = float('nan')  # wall time of process_cloud: decode + segment + encode (ms)
+    # One-line notes about a usable but suspicious input (empty, no valid point, trailing
+    # bytes); the node reports them as a diagnostics WARN. Empty for a normal frame.
+    warnings: list = field(default_factory=list)
 
     @property
     def num_points(self) -> int:
@@ -87,4 +90,22 @@ def process_cloud(msg, segmenter) -> FrameOutput:
     t3 = time.perf_counter()
     return FrameOutput(ground=ground, obstacles=obstacles, result=result,
                        decode_ms=(t1 - t0) * 1e3, encode_ms=(t3 - t2) * 1e3,
-                       total_ms=(t3 - t0) * 1e3)
+                       total_ms=(t3 - t0) * 1e3, warnings=input_warnings(msg, result))
+
+
+def input_warnings(msg, result) -> list:
+    """One-line notes on a cloud that decoded fine but deserves a look (see FrameOutput)."""
+    notes = []
+    n = int(result.valid_mask.size)
+    if n == 0:
+        notes.append('empty cloud (0 points)')
+    elif result.num_invalid == n:
+        notes.append(f'no valid point: all {n} points are NaN/Inf or (0, 0, 0)')
+    try:
+        extra = len(msg.data) - int(msg.height) * int(msg.row_step)
+    except (TypeError, ValueError):
+        extra = 0
+    if extra > 0 and n > 0:
+        notes.append(f'data has {extra} bytes beyond height * row_step '
+                     f'{int(msg.height) * int(msg.row_step)} (ignored)')
+    return notes

@@ -82,6 +82,10 @@ def build_grid(x: np.ndarray, y: np.ndarray, z: np.ndarray, num_segments: int,
     """
     m_count, n_count = int(num_segments), int(num_bins)
     r = np.sqrt(x * x + y * y)
+    if not np.isfinite(r).all():
+        # x*x overflows for finite coordinates beyond ~1.8e19 m (float32) / 1.3e154 m (float64):
+        # hypot does not square; float64 keeps float32 input finite
+        r = np.hypot(x.astype(np.float64), y.astype(np.float64))
     seg = segment_of(x, y, m_count)
 
     # ufunc.at only takes its fast path when the accumulator has the data's dtype
@@ -128,7 +132,8 @@ def build_grid(x: np.ndarray, y: np.ndarray, z: np.ndarray, num_segments: int,
     k = np.arange(n_count)
     inner = r_min[:, None] + k[None, :] * width[:, None]
     outer = inner + width[:, None]
-    sector_area = (np.pi / m_count) * (outer * outer - inner * inner)  # (dtheta / 2)(ro^2 - ri^2)
+    # (dtheta / 2)(ro^2 - ri^2), factored so absurdly far bins give inf, not inf - inf
+    sector_area = (np.pi / m_count) * width[:, None] * (outer + inner)
     density = count.reshape(m_count, n_count) / (density_slices * sector_area)
 
     shape = (m_count, n_count)

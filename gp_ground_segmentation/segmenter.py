@@ -213,7 +213,9 @@ class GroundSegmenter:
     # ------------------------------------------------------------------------------------
     def segment(self, points: np.ndarray, details: bool = False) -> SegmentationResult:
         """Label every point of one frame as ground or not; see the module docstring."""
-        with _single_threaded_blas():
+        # overflow to inf is handled where it can happen (absurdly far points: the kernel between
+        # them becomes 0); do not spray RuntimeWarnings into a node's log for it
+        with _single_threaded_blas(), np.errstate(over='ignore'):
             return self._segment(points, details)
 
     def _segment(self, points: np.ndarray, details: bool) -> SegmentationResult:

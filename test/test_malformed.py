@@ -326,13 +326,10 @@ def _empty_name(msg):
     msg.fields = f
 
 
-# Found by fuzzing the core with random bit patterns; grid.py is not this test's to fix.
-CORE_BUG_OVERFLOW = (
-    'grid.build_grid computes r = sqrt(x*x + y*y): a finite point beyond ~1.8e19 m (float32) or '
-    '~1.3e154 m (float64) gives r = inf, the bin index becomes NaN -> negative int32 and '
-    "np.bincount raises ValueError \"'list' argument must have no negative elements\"; the "
-    'node survives (processing error, frame dropped). Fix in grid.py: np.hypot and clip the '
-    'bin index to [0, N-1] (or treat |r| = inf as invalid).')
+# Found by fuzzing the core with random bit patterns: r = sqrt(x*x + y*y) overflowed for finite
+# points beyond ~1.8e19 m (float32) / ~1.3e154 m (float64); grid.build_grid now falls back to
+# hypot in float64. Regression tests: 'coordinates of 1e200 m' below and
+# test_core_float32_input_beyond_1e19_m.
 
 
 def _unknown_type(msg):
@@ -461,8 +458,7 @@ CASES = [
         spec=LAYOUT_A[:3], itemsize=12)),  # cloud_xyz widens to float64: no overflow
     Case('coordinates of 1e200 m in float64 (x*x overflows)', lambda s: encode(
         header(s), np.r_[scene()[0], [[1e200, 1e200, 0.0]]],
-        spec=[('x', 'f8', 0), ('y', 'f8', 8), ('z', 'f8', 16)], itemsize=24),
-        core_bug=CORE_BUG_OVERFLOW),
+        spec=[('x', 'f8', 0), ('y', 'f8', 8), ('z', 'f8', 16)], itemsize=24)),
     Case('field count 0', _mutate(_count0), error="field 'ring' has count 0"),
     Case('empty field name', _mutate(_empty_name), error='non-empty string'),
     Case('empty frame_id', lambda s: encode(header(s, frame_id=''), scene()[0],
@@ -506,7 +502,6 @@ def test_core_api(case):
         case.expect(built, g, o)
 
 
-@pytest.mark.xfail(strict=True, raises=ValueError, reason=CORE_BUG_OVERFLOW)
 def test_core_float32_input_beyond_1e19_m():
     """GroundSegmenter.segment on float32 points (its documented input) with one far point."""
     xyz = np.r_[scene()[0], [[1e20, 0.0, 0.0]]].astype(np.float32)

@@ -118,7 +118,6 @@ class FrameGP:
         diff = self.r[:, :, None] - self.r[:, None, :]
         self.q = np.where(pair, diff * diff / sd, 0.0)  # (r_i - r_j)^2 / (d_i^2 + d_j^2)
         self.eye = np.broadcast_to(np.eye(n_max, dtype=bool), (s_count, n_max, n_max))
-        self.pad_diag = self.eye & ~pair  # identity rows/cols of padded slots
         self.cholesky_fallbacks = 0
         self.extra_noise = np.zeros_like(self.r)
         self._cache = None
@@ -127,7 +126,11 @@ class FrameGP:
     def kernel(self, theta):
         """K (S, n, n) at theta, zero on padded slots."""
         sigma_f, gain, _ = theta
-        return (sigma_f * sigma_f) * self.prefactor * np.exp(-self.q / (gain * gain))
+        k = np.multiply(self.q, -1.0 / (gain * gain))  # in place from here: one temporary
+        np.exp(k, out=k)
+        k *= self.prefactor
+        k *= sigma_f * sigma_f
+        return k
 
     def solve(self, theta) -> GPSolution:
         """Factorise A at theta, adding growing diagonal jitter if Cholesky fails.
@@ -141,20 +144,23 @@ class FrameGP:
         if self._cache is not None and self._cache[0] == key:
             return self._cache[1]  # L-BFGS-B re-evaluates its start and end points
         k = self.kernel(theta)
-        noise = theta[2] ** 2 + self.extra_noise
-        a = k + np.where(self.eye & self.pair, noise[:, :, None], 0.0) + self.pad_diag
+        # A = K + noise on the diagonal; padded slots get 1 there (identity rows, K is 0 there)
+        diagonal = np.where(self.valid, theta[2] ** 2 + self.extra_noise, 1.0)
+        a = k.copy()
+        a_diag = a.reshape(a.shape[0], -1)[:, ::a.shape[-1] + 1]  # a view of every diagonal
+        a_diag += diagonal
         jitter = 0.0
         for attempt in range(6):
             try:
-                chol = np.linalg.cholesky(a if jitter == 0 else a + jitter * self.eye)
+                chol = np.linalg.cholesky(a)
                 break
             except np.linalg.LinAlgError:
-                jitter = max(jitter * 100.0, 1e-8 * theta[0] ** 2 + 1e-10)
+                step = max(jitter * 99.0, 1e-8 * theta[0] ** 2 + 1e-10)  # jitter x100 each time
+                a_diag += step
+                jitter += step
                 self.cholesky_fallbacks += 1
         else:
             raise np.linalg.LinAlgError('kernel matrix not positive definite even with jitter')
-        if jitter:
-            a = a + jitter * self.eye
         diag = np.diagonal(chol, axis1=1, axis2=2)
         logdet = 2.0 * np.log(diag).sum()
         a_inv = np.linalg.inv(a)

@@ -16,7 +16,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from common import load_labeled_kitti, markdown_table, score, synthetic_datasets
+from common import (REPO, command_line, load_labeled_kitti, machine_markdown, markdown_table,
+                    score, synthetic_datasets, update_results_section)
 
 from gp_ground_segmentation import GroundSegmenter, SegmenterParams  # noqa: E402 (path via common)
 
@@ -26,7 +27,7 @@ DEFAULT_VARIANTS = (
     'ground_threshold_std_factor=1.0', 'num_bins=16', 'num_bins=32',
     'num_segments=90', 'num_segments=180', 'outlier_residual_m=0.4',
     'anchor_std_m=3.0', 'plateau_step_m=10.0', 'length_scale_gain_max=200.0',
-    'max_length_factor=50.0', 'density_in_flat_branch=false', 'deming_variance_ratio=0.1',
+    'max_length_factor=50.0', 'density_in_flat_branch=true', 'deming_variance_ratio=0.1',
 )
 
 
@@ -44,6 +45,8 @@ def parse_variant(text: str) -> dict:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('variants', nargs='*', help='"name=value ..." per variant')
+    parser.add_argument('--no-write', action='store_true',
+                        help='print only; do not update benchmarks/RESULTS.md')
     args = parser.parse_args(argv)
     variants = args.variants or list(DEFAULT_VARIANTS)
     frames = []
@@ -67,7 +70,15 @@ def main(argv=None) -> int:
                 real_f1 = f"{metrics['f1']:.3f}"
         rows.append(row + [real_f1])
         print(' | '.join(row + [real_f1]), file=sys.stderr, flush=True)
-    print(markdown_table(headers, rows))
+    table = markdown_table(headers, rows)
+    print(table)
+    if not args.no_write:
+        text = ('## Parameter sweep (`sweep_params.py`)\n\n' + machine_markdown(command_line())
+                + '\nEach cell: ground precision / recall of the second (warm-started) frame; '
+                'SemanticKITTI scored with the Patchwork protocol (vegetation non-ground), '
+                'synthetic scenes against exact truth. One parameter changed per row.\n\n'
+                + table + '\n')
+        update_results_section(REPO / 'benchmarks' / 'RESULTS.md', 'sweep_params', text)
     return 0
 
 

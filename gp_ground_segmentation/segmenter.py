@@ -235,16 +235,20 @@ class GroundSegmenter:
         xyz = pts[:, :3].astype(work_dtype, copy=False)
         n_points = xyz.shape[0]
         valid = valid_points_mask(xyz)
-        valid_index = np.flatnonzero(valid)
+        all_valid = bool(valid.all())
+        # index arrays only when some points are invalid (8 bytes a point otherwise wasted)
+        valid_index = slice(None) if all_valid else np.flatnonzero(valid)
+        n_valid = n_points if all_valid else int(valid_index.size)
         stats['points'] = n_points
-        stats['valid_points'] = int(valid_index.size)
+        stats['valid_points'] = n_valid
         ground = np.zeros(n_points, dtype=bool)
         height = np.full(n_points, np.nan)
-        if valid_index.size == 0:
+        if n_valid == 0:
             timings['total'] = (time.perf_counter() - t_start) * 1e3
             return SegmentationResult(ground, valid, height, self._theta, timings, stats)
-        xyz_v = xyz if valid_index.size == n_points else xyz[valid_index]
+        xyz_v = xyz if all_valid else xyz[valid_index]
         x, y, z = (np.ascontiguousarray(xyz_v[:, i]) for i in range(3))
+        del xyz_v
 
         t = time.perf_counter()
         grid = build_grid(x, y, z, p.num_segments, p.num_bins, p.density_slices)
@@ -344,21 +348,31 @@ class GroundSegmenter:
         timings['predict'] = (time.perf_counter() - t) * 1e3
 
         t = time.perf_counter()
-        # linear interpolation between the edges of each point's bin (flat gathers)
-        edge = grid.point_segment * (n_bins + 1) + grid.point_bin
+        # linear interpolation between the edges of each point's bin (flat gathers, in the
+        # points' precision: at 2M points every float64 temporary is 16 MB)
+        edge = grid.point_segment * np.int32(n_bins + 1) + grid.point_bin
         frac = grid.point_bin_fraction
-        mean_flat = mean_full.ravel()
-        z0 = mean_flat[edge]
-        z_hat = z0 + (mean_flat[edge + 1] - z0) * frac
+        mean_flat = mean_full.ravel().astype(frac.dtype)
+        z_hat = mean_flat[edge]
+        edge += 1
+        step = mean_flat[edge]
+        step -= z_hat
+        step *= frac
+        z_hat += step
         if p.ground_threshold_std_factor > 0:
-            std_flat = std_full.ravel()
-            s0 = std_flat[edge]
-            std = s0 + (std_flat[edge + 1] - s0) * frac
+            std_flat = std_full.ravel().astype(frac.dtype)
+            std = std_flat[edge]
+            s0 = std_flat[edge - 1]
+            std -= s0
+            std *= frac
+            std += s0
             threshold = np.minimum(p.ground_threshold_m + p.ground_threshold_std_factor * std,
                                    p.max_threshold_m)
         else:
-            threshold = np.full(z_hat.shape, min(p.ground_threshold_m, p.max_threshold_m))
-        ground[valid_index] = z - z_hat <= threshold
+            threshold = min(p.ground_threshold_m, p.max_threshold_m)
+        del edge, step
+        residual = z - z_hat
+        ground[valid_index] = residual <= threshold
         height[valid_index] = z_hat
         timings['label'] = (time.perf_counter() - t) * 1e3
         timings['total'] = (time.perf_counter() - t_start) * 1e3
@@ -366,7 +380,8 @@ class GroundSegmenter:
 
         extra = None
         if details:
-            extra = SegmentationDetails(valid_index, grid, lines, train_full, out_full,
+            threshold = np.broadcast_to(np.asarray(threshold, dtype=np.float64), z.shape)
+            extra = SegmentationDetails(np.flatnonzero(valid), grid, lines, train_full, out_full,
                                         np.where(has, theta[1] * d, np.nan), edges, mean_full,
                                         std_full, threshold)
         return SegmentationResult(ground, valid, height, self._theta, timings, stats, extra)

@@ -96,6 +96,9 @@ class SegmentationDetails:
     ground_mean: np.ndarray  # (M, N + 1) posterior mean ground height there (m)
     ground_std: np.ndarray  # (M, N + 1) posterior std there (m)
     threshold: np.ndarray  # (P,) ground threshold applied to each valid point (m)
+    gp: Optional[FrameGP] = None  # the frame's GP batch (rows = gp.segments), for analysis
+    gp_solution: Optional[object] = None  # its final factorisation (gp.GPSolution)
+    length_factor_at_edges: Optional[np.ndarray] = None  # (S, N + 1) d used at the bin edges
 
 
 @dataclass
@@ -335,6 +338,7 @@ class GroundSegmenter:
 
         t = time.perf_counter()
         edges = grid.bin_edges()
+        d_star = None
         mean_full = np.full((m_count, n_bins + 1), anchor_z)
         std_full = np.full((m_count, n_bins + 1), theta[0])
         if sol is not None:
@@ -383,5 +387,6 @@ class GroundSegmenter:
             threshold = np.broadcast_to(np.asarray(threshold, dtype=np.float64), z.shape)
             extra = SegmentationDetails(np.flatnonzero(valid), grid, lines, train_full, out_full,
                                         np.where(has, theta[1] * d, np.nan), edges, mean_full,
-                                        std_full, threshold)
+                                        std_full, threshold, gp, sol,
+                                        d_star if sol is not None else None)
         return SegmentationResult(ground, valid, height, self._theta, timings, stats, extra)

@@ -40,12 +40,19 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import minimize
 
+from . import gp_compiled
+
 LOG_2PI = float(np.log(2.0 * np.pi))
 
 
 # Failures of one marginal-likelihood evaluation that mean "theta is numerically bad here", not a
 # bug: LinAlgError is a ValueError; ArithmeticError covers Overflow/ZeroDivision/FloatingPoint.
 _NUMERICAL_ERRORS = (ValueError, ArithmeticError)
+
+
+# Factorise with the compiled kernel when numba is there (gp_compiled.py); the numpy path is
+# the reference, the fallback for non-PD matrices (jitter) and what tests use to inject failures.
+USE_COMPILED = gp_compiled.AVAILABLE
 
 
 class _BudgetExhausted(Exception):
@@ -150,21 +157,29 @@ class FrameGP:
         a_diag = a.reshape(a.shape[0], -1)[:, ::a.shape[-1] + 1]  # a view of every diagonal
         a_diag += diagonal
         jitter = 0.0
-        for attempt in range(6):
-            try:
-                chol = np.linalg.cholesky(a)
-                break
-            except np.linalg.LinAlgError:
-                step = max(jitter * 99.0, 1e-8 * theta[0] ** 2 + 1e-10)  # jitter x100 each time
-                a_diag += step
-                jitter += step
-                self.cholesky_fallbacks += 1
-        else:
-            raise np.linalg.LinAlgError('kernel matrix not positive definite even with jitter')
-        diag = np.diagonal(chol, axis1=1, axis2=2)
-        logdet = 2.0 * np.log(diag).sum()
-        a_inv = np.linalg.inv(a)
-        alpha = np.einsum('sij,sj->si', a_inv, self.z)
+        if USE_COMPILED:
+            a_inv = a.copy()
+            ok, logdets, alpha = gp_compiled.spd_inverse_batched(a_inv, self.z)
+            if ok.all():
+                logdet = float(logdets.sum())
+                a_diag = None  # done: no numpy factorisation needed
+        if not USE_COMPILED or a_diag is not None:
+            for attempt in range(6):
+                try:
+                    chol = np.linalg.cholesky(a)
+                    break
+                except np.linalg.LinAlgError:
+                    step = max(jitter * 99.0, 1e-8 * theta[0] ** 2 + 1e-10)  # x100 each time
+                    a_diag += step
+                    jitter += step
+                    self.cholesky_fallbacks += 1
+            else:
+                raise np.linalg.LinAlgError('kernel matrix not positive definite even with '
+                                            'jitter')
+            diag = np.diagonal(chol, axis1=1, axis2=2)
+            logdet = 2.0 * np.log(diag).sum()
+            a_inv = np.linalg.inv(a)
+            alpha = np.einsum('sij,sj->si', a_inv, self.z)
         lml = -0.5 * (float(np.einsum('si,si->', self.z, alpha)) + logdet
                       + self.num_points * LOG_2PI)
         sol = GPSolution(theta, alpha, a_inv, lml, jitter, k)

@@ -13,6 +13,8 @@ import numpy as np
 import pytest
 from scipy.stats import multivariate_normal
 
+from gp_ground_segmentation import gp as gp_module
+from gp_ground_segmentation import gp_compiled
 from gp_ground_segmentation.gp import FrameGP, length_scale_factors, paciorek_kernel
 
 BOUNDS = [(0.01, 20.0), (0.05, 200.0), (0.005, 2.0)]
@@ -404,3 +406,32 @@ def test_cholesky_failure_falls_back_without_raising():
     assert gp.cholesky_fallbacks >= before
     mean, std = gp.predict(gp.solve(theta), np.full((2, 3), 5.0), np.ones((2, 3)))
     assert np.all(np.isfinite(mean)) and np.all(np.isfinite(std))
+
+
+@pytest.mark.skipif(not gp_compiled.AVAILABLE, reason='numba not installed')
+@pytest.mark.parametrize('seed', range(4))
+def test_compiled_factorisation_equals_numpy(monkeypatch, seed):
+    """The numba kernel and the numpy reference give the same solution, LML and gradient."""
+    r, z, d, mask = random_problem(seed)
+    theta = np.log([0.7, 1.5, 0.08])
+    monkeypatch.setattr(gp_module, 'USE_COMPILED', False)
+    ref_gp = FrameGP(r, z, d, mask)
+    ref_lml, ref_grad = ref_gp.lml_and_gradient(theta)
+    ref = ref_gp.solve(np.exp(theta))
+    monkeypatch.setattr(gp_module, 'USE_COMPILED', True)
+    fast_gp = FrameGP(r, z, d, mask)
+    lml, grad = fast_gp.lml_and_gradient(theta)
+    fast = fast_gp.solve(np.exp(theta))
+    assert lml == pytest.approx(ref_lml, rel=1e-10)
+    np.testing.assert_allclose(grad, ref_grad, rtol=1e-8)
+    np.testing.assert_allclose(fast.a_inv, ref.a_inv, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(fast.alpha, ref.alpha, rtol=1e-9, atol=1e-12)
+
+
+def test_compiled_kernel_reports_non_pd_matrices():
+    a = np.stack([np.eye(3) * 2.0, np.array([[1.0, 2.0, 0.0], [2.0, 1.0, 0.0], [0, 0, 1.0]])])
+    z = np.ones((2, 3))
+    ok, logdet, alpha = gp_compiled.spd_inverse_batched(a.copy(), z)
+    assert ok.tolist() == [True, False]
+    assert logdet[0] == pytest.approx(3 * np.log(2.0))
+    np.testing.assert_allclose(alpha[0], 0.5)

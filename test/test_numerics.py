@@ -23,6 +23,7 @@ from conftest import status_values, wait_for
 
 from gp_ground_segmentation import GroundSegmenter, Hyperparameters, SegmenterParams
 from gp_ground_segmentation import segmenter as segmenter_module
+from gp_ground_segmentation import gp as gp_module
 from gp_ground_segmentation.gp import FrameGP, length_scale_factors
 from gp_ground_segmentation.synthetic import make_scene, simulate_scan
 
@@ -146,6 +147,7 @@ def test_cholesky_jitter_grows_until_success_and_every_retry_is_counted(monkeypa
         if len(added) <= 4:
             raise np.linalg.LinAlgError('injected')
         return real(a)
+    monkeypatch.setattr(gp_module, 'USE_COMPILED', False)  # inject into the numpy path
     monkeypatch.setattr(np.linalg, 'cholesky', flaky)
     sol = gp.solve((0.5, 2.0, 0.05))
     assert gp.cholesky_fallbacks == 4 and len(added) == 5
@@ -292,6 +294,7 @@ def _fail_first_cholesky_calls(monkeypatch, count):
             state['left'] -= 1
             raise np.linalg.LinAlgError('injected')
         return real(a)
+    monkeypatch.setattr(gp_module, 'USE_COMPILED', False)  # inject into the numpy path
     monkeypatch.setattr(np.linalg, 'cholesky', flaky)
     return state
 

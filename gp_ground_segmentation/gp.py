@@ -27,8 +27,10 @@ within bounds, using the analytic gradient
 
     dJ/dtheta = 1/2 sum_m tr((alpha alpha^T - A_m^-1) dA_m/dtheta),   A_m = K_m + sigma_n^2 I.
 
-All segments are solved together as one padded (M, n, n) batch (numpy's stacked Cholesky and
-inverse); padded rows are identity rows with z = 0, which add nothing to J or its gradient.
+All segments are solved together as one padded (M, n, n) batch: a compiled (numba) Cholesky +
+triangular-inverse kernel (gp_compiled.py) when available, else numpy's stacked Cholesky and
+inverse, which also handles the jittered retries; padded rows are identity rows with z = 0,
+which add nothing to J or its gradient.
 The GP prior mean is a constant m0 (the frame's median candidate height), so sigma_f describes
 deviations of the ground from a level plane at m0.
 """

@@ -39,7 +39,7 @@ setup(
     ],
     extras_require={
         # matplotlib so that CI also runs the plotting tests instead of skipping them
-        'test': ['pytest', 'hypothesis', 'matplotlib'],
+        'test': ['pytest', 'hypothesis', 'matplotlib', 'flake8'],
         'plot': ['matplotlib'],
         'bench': ['pypatchworkpp', 'linefit'],
     },

@@ -127,7 +127,8 @@ def _layout(msg):
         raise CloudFormatError(f'point_step is 0 but the cloud has {n} points')
     if height > 0 and row_step < width * point_step:
         raise CloudFormatError(
-            f'row_step {row_step} < width {width} * point_step {point_step} = {width * point_step}')
+            f'row_step {row_step} < width {width} * point_step {point_step} = '
+            f'{width * point_step}')
     buf = _data_buffer(msg)
     need = height * row_step if n > 0 else 0
     if buf.size < need:
@@ -337,8 +338,9 @@ def make_cloud(header, points, msg_type=None):
     msg.row_step = int(dt.itemsize) * int(pts.shape[0])
     msg.data = _u8_array(pts.view(np.uint8) if pts.size else np.zeros(0, np.uint8))
     names = dt.names
-    if all(c in names for c in ('x', 'y', 'z')) and all(pts.dtype.fields[c][0].shape == ()
-                                                         for c in ('x', 'y', 'z')):
+    xyz_names = ('x', 'y', 'z')
+    if (all(c in names for c in xyz_names)
+            and all(pts.dtype.fields[c][0].shape == () for c in xyz_names)):
         msg.is_dense = all(bool(np.isfinite(pts[c]).all()) for c in ('x', 'y', 'z'))
     else:
         msg.is_dense = False

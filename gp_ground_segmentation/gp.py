@@ -244,7 +244,7 @@ class FrameGP:
             info['failed'] = True
             return theta0, info
         if not values or not np.isfinite(min(values)):
-            info['failed'] = True  # never move to a worse or undefined theta: keep the last good one
+            info['failed'] = True  # never move to an undefined theta: keep the last good one
             return theta0, info
         best = int(np.argmin(values))  # values[0] is theta0: the result is never worse
         return np.exp(points[best]), info

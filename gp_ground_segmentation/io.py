@@ -55,7 +55,8 @@ def read_semantickitti_labels(path, expected_points=None):
         raise _err(path, f'size {len(raw)} bytes is not a multiple of 4 (uint32 per point)')
     labels = np.frombuffer(raw, dtype='<u4')
     if expected_points is not None and labels.size != int(expected_points):
-        raise _err(path, f'has {labels.size} labels but the scan has {int(expected_points)} points')
+        raise _err(path, f'has {labels.size} labels but the scan has {int(expected_points)} '
+                         'points')
     return (labels & np.uint32(0xFFFF)).astype(np.uint32)
 
 
@@ -342,4 +343,3 @@ def read_points_file(path):
                              f"{' '.join(arr.dtype.names)})")
         return arr
     raise _err(path, f"unsupported file type '{ext or '(none)'}' (expected .bin or .pcd)")
-

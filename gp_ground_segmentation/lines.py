@@ -67,8 +67,8 @@ def deming_fit(s_rr, s_zz, s_rz, mean_r, mean_z, variance_ratio):
     three). Returns ``(alpha, beta)``. Where s_rz == 0 the line is horizontal if the spread is
     mostly along r, else vertical (beta = +-inf).
     """
-    s_rr, s_zz, s_rz = np.broadcast_arrays(*(np.asarray(v, dtype=np.float64)
-                                              for v in (s_rr, s_zz, s_rz)))
+    s_rr, s_zz, s_rz = np.broadcast_arrays(
+        *(np.asarray(v, dtype=np.float64) for v in (s_rr, s_zz, s_rz)))
     lam = float(variance_ratio)
     diff = s_zz - lam * s_rr
     with np.errstate(divide='ignore', invalid='ignore'):

@@ -81,8 +81,10 @@ class SegmenterParams:
     sigma_n_init_m: float = _param(0.05, 'initial sigma_n, GP noise std (m)', 1e-4, 10.0)
     sigma_f_min_m: float = _param(0.01, 'lower bound of sigma_f during learning (m)', 1e-4, 100.0)
     sigma_f_max_m: float = _param(20.0, 'upper bound of sigma_f during learning (m)', 1e-3, 1e3)
-    length_scale_gain_min: float = _param(0.05, 'lower bound of a during learning (m per unit d)', 1e-4, 1e3)
-    length_scale_gain_max: float = _param(5.0, 'upper bound of a during learning (m per unit d)', 1e-3, 1e5)
+    length_scale_gain_min: float = _param(
+        0.05, 'lower bound of a during learning (m per unit d)', 1e-4, 1e3)
+    length_scale_gain_max: float = _param(
+        5.0, 'upper bound of a during learning (m per unit d)', 1e-3, 1e5)
     sigma_n_min_m: float = _param(0.02, 'lower bound of sigma_n during learning (m)', 1e-5, 10.0)
     sigma_n_max_m: float = _param(2.0, 'upper bound of sigma_n during learning (m)', 1e-4, 100.0)
     optimizer_max_evaluations: int = _param(
@@ -121,7 +123,8 @@ class SegmenterParams:
                 if not isinstance(value, bool):
                     raise ValueError(f'{f.name}: expected a bool, got {value!r}')
                 continue
-            if isinstance(f.default, int) and (isinstance(value, bool) or not isinstance(value, int)):
+            if isinstance(f.default, int) and (isinstance(value, bool)
+                                               or not isinstance(value, int)):
                 raise ValueError(f'{f.name}: expected an integer, got {value!r}')
             if isinstance(f.default, float) and (isinstance(value, bool)
                                                  or not isinstance(value, (int, float))):

@@ -120,7 +120,7 @@ class SegmentationResult:
 
     @property
     def num_invalid(self) -> int:
-        """Points that are NaN/Inf or the (0, 0, 0) no-return value: neither ground nor obstacle."""
+        """NaN/Inf points and the (0, 0, 0) no-return value: neither ground nor obstacle."""
         return int(self.valid_mask.size - np.count_nonzero(self.valid_mask))
 
 
@@ -152,6 +152,57 @@ def _ground_under_sensor(grid: RadialGrid, lines: LineSegments, training: np.nda
     return float(np.median(grid.candidate_z[training]))
 
 
+class _GroundModel(NamedTuple):
+    """What the ``gp_fit`` stage hands to ``predict``."""
+
+    gp: FrameGP
+    solution: Optional[object]  # gp.GPSolution, None when no segment has a candidate
+    theta: np.ndarray  # (3,) sigma_f, a, sigma_n used for the frame
+    training: np.ndarray  # (M, N) candidates that trained the GP
+    outliers: np.ndarray  # (M, N) candidates rejected by the robust passes
+    length_factor: np.ndarray  # (M, N) d_i
+    anchor_z: float  # ground height under the vehicle (m)
+
+
+def _ground_at_bin_edges(model: _GroundModel, grid: RadialGrid, need_std: bool):
+    """GP posterior mean (and std) at the N + 1 bin edges of every segment (stage ``predict``).
+
+    Segments without any candidate keep the anchor height and the prior std sigma_f.
+    Returns (edges, mean, std, d at the edges of the GP's segments) with (M, N + 1) arrays.
+    """
+    m_count, n_bins = grid.num_segments, grid.num_bins
+    edges = grid.bin_edges()
+    mean = np.full((m_count, n_bins + 1), model.anchor_z)
+    std = np.full((m_count, n_bins + 1), model.theta[0])
+    d_star = None
+    if model.solution is not None:
+        rows = model.gp.segments
+        d_fill = _fill_along_rows(model.length_factor, model.training)
+        d_star = np.concatenate([d_fill, d_fill[:, -1:]], axis=1)[rows]
+        mean_b, std_b = model.gp.predict(model.solution, edges[rows], d_star, with_std=need_std)
+        mean[rows] = mean_b
+        if need_std:
+            std[rows] = std_b
+    return edges, mean, std, d_star
+
+
+def _interpolate_at_points(values: np.ndarray, grid: RadialGrid) -> np.ndarray:
+    """(M, N + 1) values at bin edges -> every point, linearly along r within its bin.
+
+    Flat gathers in the points' precision: at 2 M points every float64 temporary is 16 MB.
+    """
+    frac = grid.point_bin_fraction
+    flat = values.ravel().astype(frac.dtype)
+    edge = grid.point_segment * np.int32(grid.num_bins + 1) + grid.point_bin
+    out = flat[edge]
+    edge += 1
+    step = flat[edge]
+    step -= out
+    step *= frac
+    out += step
+    return out
+
+
 def _fill_along_rows(values: np.ndarray, known: np.ndarray) -> np.ndarray:
     """Fill unknown entries of each row with the nearest known entry to their left (else right)."""
     n = values.shape[1]
@@ -175,7 +226,6 @@ class GroundSegmenter:
     def __init__(self, params: SegmenterParams | None = None,
                  hyperparameters: Hyperparameters | None = None):
         self._params = (params or SegmenterParams()).validate()
-        self._frames = 0
         if hyperparameters is None:
             p = self._params
             hyperparameters = Hyperparameters(p.sigma_f_init_m, p.length_scale_gain_init,
@@ -213,59 +263,10 @@ class GroundSegmenter:
         lo, hi = zip(*self._bounds())
         return Hyperparameters(*(float(v) for v in np.clip(np.asarray(theta, float), lo, hi)))
 
-    # ------------------------------------------------------------------------------------
-    def segment(self, points: np.ndarray, details: bool = False) -> SegmentationResult:
-        """Label every point of one frame as ground or not; see the module docstring."""
-        # overflow to inf is handled where it can happen (absurdly far points: the kernel between
-        # them becomes 0); do not spray RuntimeWarnings into a node's log for it
-        with _single_threaded_blas(), np.errstate(over='ignore'):
-            return self._segment(points, details)
-
-    def _segment(self, points: np.ndarray, details: bool) -> SegmentationResult:
+    def _fit_ground_model(self, grid: RadialGrid, lines: LineSegments,
+                          stats: dict) -> _GroundModel:
+        """Length scales, anchor, robust rejection and theta learning (stage ``gp_fit``)."""
         p = self._params
-        t_start = time.perf_counter()
-        timings = {}
-        stats = {'points': 0, 'valid_points': 0, 'candidates': 0, 'training_candidates': 0,
-                 'outlier_candidates': 0, 'steep_line_candidates': 0, 'lines': 0,
-                 'cholesky_fallbacks': 0, 'optimizer_iterations': 0, 'optimizer_failures': 0,
-                 'log_marginal_likelihood': float('nan')}
-        pts = np.asarray(points)
-        if pts.ndim != 2 or pts.shape[1] < 3:
-            raise ValueError(f'points must be an (N, >=3) array, got shape {pts.shape}')
-        # float32 input (every LiDAR driver) is processed in float32 up to the candidates: the
-        # per-point arithmetic is memory-bound and mm precision is plenty for r and z.
-        work_dtype = pts.dtype if pts.dtype in (np.float32, np.float64) else np.float64
-        xyz = pts[:, :3].astype(work_dtype, copy=False)
-        n_points = xyz.shape[0]
-        valid = valid_points_mask(xyz)
-        all_valid = bool(valid.all())
-        # index arrays only when some points are invalid (8 bytes a point otherwise wasted)
-        valid_index = slice(None) if all_valid else np.flatnonzero(valid)
-        n_valid = n_points if all_valid else int(valid_index.size)
-        stats['points'] = n_points
-        stats['valid_points'] = n_valid
-        ground = np.zeros(n_points, dtype=bool)
-        height = np.full(n_points, np.nan)
-        if n_valid == 0:
-            timings['total'] = (time.perf_counter() - t_start) * 1e3
-            return SegmentationResult(ground, valid, height, self._theta, timings, stats)
-        xyz_v = xyz if all_valid else xyz[valid_index]
-        x, y, z = (np.ascontiguousarray(xyz_v[:, i]) for i in range(3))
-        del xyz_v
-
-        t = time.perf_counter()
-        grid = build_grid(x, y, z, p.num_segments, p.num_bins, p.density_slices)
-        timings['grid'] = (time.perf_counter() - t) * 1e3
-
-        t = time.perf_counter()
-        lines = extract_lines(grid.candidate_r, grid.candidate_z, grid.density,
-                              variance_ratio=p.deming_variance_ratio, max_slope=p.line_max_slope,
-                              max_distance_m=p.line_max_distance_m, max_gap_m=p.line_max_gap_m,
-                              max_density_jump=p.line_max_density_jump,
-                              step_up_m=p.plateau_step_m)
-        timings['lines'] = (time.perf_counter() - t) * 1e3
-
-        t = time.perf_counter()
         has = grid.has_candidate
         steep = has & (lines.slope > p.line_max_slope)
         training = has & ~steep & ~lines.elevated
@@ -334,59 +335,88 @@ class GroundSegmenter:
         stats['outlier_candidates'] = int(out_full.sum())
         stats['training_candidates'] = int(train_full.sum())
         stats['cholesky_fallbacks'] = gp.cholesky_fallbacks
+        return _GroundModel(gp, sol, theta, train_full, out_full, d, anchor_z)
+
+    # ------------------------------------------------------------------------------------
+    def segment(self, points: np.ndarray, details: bool = False) -> SegmentationResult:
+        """Label every point of one frame as ground or not; see the module docstring."""
+        # overflow to inf is handled where it can happen (absurdly far points: the kernel between
+        # them becomes 0); do not spray RuntimeWarnings into a node's log for it
+        with _single_threaded_blas(), np.errstate(over='ignore'):
+            return self._segment(points, details)
+
+    def _segment(self, points: np.ndarray, details: bool) -> SegmentationResult:
+        p = self._params
+        t_start = time.perf_counter()
+        timings = {}
+        stats = {'points': 0, 'valid_points': 0, 'candidates': 0, 'training_candidates': 0,
+                 'outlier_candidates': 0, 'steep_line_candidates': 0, 'lines': 0,
+                 'cholesky_fallbacks': 0, 'optimizer_iterations': 0, 'optimizer_failures': 0,
+                 'log_marginal_likelihood': float('nan')}
+        pts = np.asarray(points)
+        if pts.ndim != 2 or pts.shape[1] < 3:
+            raise ValueError(f'points must be an (N, >=3) array, got shape {pts.shape}')
+        # float32 input (every LiDAR driver) is processed in float32 up to the candidates: the
+        # per-point arithmetic is memory-bound and mm precision is plenty for r and z.
+        work_dtype = pts.dtype if pts.dtype in (np.float32, np.float64) else np.float64
+        xyz = pts[:, :3].astype(work_dtype, copy=False)
+        n_points = xyz.shape[0]
+        valid = valid_points_mask(xyz)
+        all_valid = bool(valid.all())
+        # index arrays only when some points are invalid (8 bytes a point otherwise wasted)
+        valid_index = slice(None) if all_valid else np.flatnonzero(valid)
+        n_valid = n_points if all_valid else int(valid_index.size)
+        stats['points'] = n_points
+        stats['valid_points'] = n_valid
+        ground = np.zeros(n_points, dtype=bool)
+        height = np.full(n_points, np.nan)
+        if n_valid == 0:
+            timings['total'] = (time.perf_counter() - t_start) * 1e3
+            return SegmentationResult(ground, valid, height, self._theta, timings, stats)
+        xyz_v = xyz if all_valid else xyz[valid_index]
+        x, y, z = (np.ascontiguousarray(xyz_v[:, i]) for i in range(3))
+        del xyz_v
+
+        t = time.perf_counter()
+        grid = build_grid(x, y, z, p.num_segments, p.num_bins, p.density_slices)
+        timings['grid'] = (time.perf_counter() - t) * 1e3
+
+        t = time.perf_counter()
+        lines = extract_lines(grid.candidate_r, grid.candidate_z, grid.density,
+                              variance_ratio=p.deming_variance_ratio, max_slope=p.line_max_slope,
+                              max_distance_m=p.line_max_distance_m, max_gap_m=p.line_max_gap_m,
+                              max_density_jump=p.line_max_density_jump,
+                              step_up_m=p.plateau_step_m)
+        timings['lines'] = (time.perf_counter() - t) * 1e3
+
+        t = time.perf_counter()
+        model = self._fit_ground_model(grid, lines, stats)
+        theta = model.theta
         timings['gp_fit'] = (time.perf_counter() - t) * 1e3
 
         t = time.perf_counter()
-        edges = grid.bin_edges()
-        d_star = None
-        mean_full = np.full((m_count, n_bins + 1), anchor_z)
-        std_full = np.full((m_count, n_bins + 1), theta[0])
-        if sol is not None:
-            d_fill = _fill_along_rows(d, train_full)
-            d_star = np.concatenate([d_fill, d_fill[:, -1:]], axis=1)[gp.segments]
-            need_std = details or p.ground_threshold_std_factor > 0
-            mean_b, std_b = gp.predict(sol, edges[gp.segments], d_star, with_std=need_std)
-            mean_full[gp.segments] = mean_b
-            if need_std:
-                std_full[gp.segments] = std_b
+        need_std = details or p.ground_threshold_std_factor > 0
+        edges, mean_full, std_full, d_star = _ground_at_bin_edges(model, grid, need_std)
         timings['predict'] = (time.perf_counter() - t) * 1e3
 
         t = time.perf_counter()
-        # linear interpolation between the edges of each point's bin (flat gathers, in the
-        # points' precision: at 2M points every float64 temporary is 16 MB)
-        edge = grid.point_segment * np.int32(n_bins + 1) + grid.point_bin
-        frac = grid.point_bin_fraction
-        mean_flat = mean_full.ravel().astype(frac.dtype)
-        z_hat = mean_flat[edge]
-        edge += 1
-        step = mean_flat[edge]
-        step -= z_hat
-        step *= frac
-        z_hat += step
+        z_hat = _interpolate_at_points(mean_full, grid)
         if p.ground_threshold_std_factor > 0:
-            std_flat = std_full.ravel().astype(frac.dtype)
-            std = std_flat[edge]
-            s0 = std_flat[edge - 1]
-            std -= s0
-            std *= frac
-            std += s0
+            std = _interpolate_at_points(std_full, grid)
             threshold = np.minimum(p.ground_threshold_m + p.ground_threshold_std_factor * std,
                                    p.max_threshold_m)
         else:
             threshold = min(p.ground_threshold_m, p.max_threshold_m)
-        del edge, step
-        residual = z - z_hat
-        ground[valid_index] = residual <= threshold
+        ground[valid_index] = z - z_hat <= threshold
         height[valid_index] = z_hat
         timings['label'] = (time.perf_counter() - t) * 1e3
         timings['total'] = (time.perf_counter() - t_start) * 1e3
-        self._frames += 1
 
         extra = None
         if details:
             threshold = np.broadcast_to(np.asarray(threshold, dtype=np.float64), z.shape)
-            extra = SegmentationDetails(np.flatnonzero(valid), grid, lines, train_full, out_full,
-                                        np.where(has, theta[1] * d, np.nan), edges, mean_full,
-                                        std_full, threshold, gp, sol,
-                                        d_star if sol is not None else None)
+            extra = SegmentationDetails(
+                np.flatnonzero(valid), grid, lines, model.training, model.outliers,
+                np.where(grid.has_candidate, theta[1] * model.length_factor, np.nan), edges,
+                mean_full, std_full, threshold, model.gp, model.solution, d_star)
         return SegmentationResult(ground, valid, height, self._theta, timings, stats, extra)

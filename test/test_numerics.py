@@ -420,7 +420,6 @@ def test_fallbacks_and_optimizer_failures_reach_node_diagnostics(ramp_points, mo
     assert wait_for(lambda: len(h.ground) >= 2, 5.0)
 
 
-
 @pytest.mark.parametrize('dtype, big', [(np.float32, 1e20), (np.float32, 3e38),
                                         (np.float64, 1e200), (np.float64, 1e300)])
 def test_finite_coordinates_whose_square_overflows(ramp_points, dtype, big):

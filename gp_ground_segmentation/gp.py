@@ -57,6 +57,16 @@ _NUMERICAL_ERRORS = (ValueError, ArithmeticError)
 USE_COMPILED = gp_compiled.AVAILABLE
 
 
+def _compiled_inverse(a, z):
+    """The numba kernel; if it cannot run on this platform, switch to numpy for good."""
+    global USE_COMPILED
+    try:
+        return gp_compiled.spd_inverse_batched(a, z)
+    except Exception:  # noqa: BLE001 - numba compile/runtime failure: numpy is the reference
+        USE_COMPILED = False
+        return np.zeros(a.shape[0], dtype=bool), None, None
+
+
 class _BudgetExhausted(Exception):
     """Raised inside the objective to stop L-BFGS-B exactly at the evaluation cap."""
 
@@ -161,11 +171,11 @@ class FrameGP:
         jitter = 0.0
         if USE_COMPILED:
             a_inv = a.copy()
-            ok, logdets, alpha = gp_compiled.spd_inverse_batched(a_inv, self.z)
+            ok, logdets, alpha = _compiled_inverse(a_inv, self.z)
             if ok.all():
                 logdet = float(logdets.sum())
                 a_diag = None  # done: no numpy factorisation needed
-        if not USE_COMPILED or a_diag is not None:
+        if a_diag is not None:
             for attempt in range(6):
                 try:
                     chol = np.linalg.cholesky(a)

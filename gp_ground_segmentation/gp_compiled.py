@@ -81,3 +81,13 @@ def _spd_inverse_batched(a, z):
 
 spd_inverse_batched = (numba.njit(cache=True)(_spd_inverse_batched) if AVAILABLE
                        else _spd_inverse_batched)
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's cache) the kernel now instead of inside the first frame.
+
+    The node's worker thread calls this before it waits for clouds, so the first frame does not
+    pay the 0.2-1 s and drop the frames that arrive meanwhile. A no-op without numba.
+    """
+    if AVAILABLE:
+        spd_inverse_batched(np.eye(2)[None].copy(), np.zeros((1, 2)))

@@ -58,6 +58,7 @@ from .cloud import CloudFormatError
 from .config import (NODE_NAME, NODE_PARAMS, ParameterConfigError, all_param_specs,
                      check_param_value, split_params)
 from .diagnostics import ProcessingWindow, diagnostics_array, diagnostics_status
+from . import gp, gp_compiled
 from .params import SegmenterParams
 from .pipeline import process_cloud
 from .segmenter import GroundSegmenter
@@ -229,6 +230,11 @@ class GroundSegmentationNode(Node):
 
     # --- worker thread ---------------------------------------------------------------------
     def _worker_loop(self) -> None:
+        try:
+            gp_compiled.warm_up()  # load the compiled GP kernel before the first cloud arrives
+        except Exception as exc:  # noqa: BLE001 - numpy fallback still works; say so once
+            self.get_logger().warning(f'compiled GP kernel unavailable, using numpy: {exc}')
+            gp.USE_COMPILED = False
         while True:
             with self._cond:
                 while not self._slot and not self._stopping:

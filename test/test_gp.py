@@ -435,3 +435,15 @@ def test_compiled_kernel_reports_non_pd_matrices():
     assert ok.tolist() == [True, False]
     assert logdet[0] == pytest.approx(3 * np.log(2.0))
     np.testing.assert_allclose(alpha[0], 0.5)
+
+
+def test_broken_compiled_kernel_falls_back_to_numpy(monkeypatch):
+    """If numba cannot compile or run on a platform, the frame is still solved (numpy)."""
+    def broken(a, z):
+        raise RuntimeError('no LLVM here')
+    monkeypatch.setattr(gp_module, 'USE_COMPILED', True)
+    monkeypatch.setattr(gp_compiled, 'spd_inverse_batched', broken)
+    r, z, d, mask = random_problem(1)
+    sol = FrameGP(r, z, d, mask).solve((0.7, 1.5, 0.08))
+    assert np.isfinite(sol.lml)
+    assert gp_module.USE_COMPILED is False

@@ -40,6 +40,17 @@ def kitti_msgs():
     return msgs
 
 
+def assert_output_like_input(inp, out):
+    """An output cloud keeps the input's header and field layout, as one unorganized row."""
+    assert out.header.stamp == inp.header.stamp
+    assert out.header.frame_id == inp.header.frame_id
+    assert [(f.name, f.offset, f.datatype, f.count) for f in out.fields] == \
+        [(f.name, f.offset, f.datatype, f.count) for f in inp.fields]
+    assert out.point_step == inp.point_step and out.is_bigendian == inp.is_bigendian
+    assert out.height == 1
+    assert out.row_step == out.width * out.point_step == len(out.data)
+
+
 def wait_for(predicate, timeout=20.0, period=0.01):
     """Poll ``predicate`` until true or ``timeout`` (s); return its last value."""
     deadline = time.monotonic() + timeout

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import assert_output_like_input
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / 'shared' / 'data'
@@ -57,12 +58,7 @@ def as_items(r):
 def assert_partition(inp, ground, obstacles):
     """ground and obstacles hold every input row exactly once, in input order, fields intact."""
     for out in (ground, obstacles):
-        assert out.header.stamp == inp.header.stamp
-        assert out.header.frame_id == inp.header.frame_id
-        assert [(f.name, f.offset, f.datatype, f.count) for f in out.fields] == \
-            [(f.name, f.offset, f.datatype, f.count) for f in inp.fields]
-        assert out.point_step == inp.point_step and out.is_bigendian == inp.is_bigendian
-        assert out.height == 1 and out.row_step == out.width * out.point_step
+        assert_output_like_input(inp, out)
     r_in, r_g, r_o = as_items(rows(inp)), as_items(rows(ground)), as_items(rows(obstacles))
     assert r_g.size > 0 and r_o.size > 0
     assert r_g.size + r_o.size == r_in.size  # KITTI has no invalid points

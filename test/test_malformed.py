@@ -38,7 +38,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import pytest
-from conftest import RosHarness, status_values, wait_for
+from conftest import RosHarness, assert_output_like_input, status_values, wait_for
 from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import Header
 
@@ -182,13 +182,7 @@ def check_split(built, ground, obstacles):
     msg = built.msg
     valid = valid_truth(built.xyz)
     for out in (ground, obstacles):
-        assert out.header.stamp == msg.header.stamp
-        assert out.header.frame_id == msg.header.frame_id
-        assert [(f.name, f.offset, f.datatype, f.count) for f in out.fields] == \
-            [(f.name, f.offset, f.datatype, f.count) for f in msg.fields]
-        assert out.point_step == msg.point_step and out.is_bigendian == msg.is_bigendian
-        assert out.height == 1 and out.row_step == out.width * out.point_step
-        assert len(out.data) == out.row_step
+        assert_output_like_input(msg, out)
     g, o = point_rows(ground), point_rows(obstacles)
     assert g.shape[0] + o.shape[0] == int(valid.sum())
     both = np.concatenate([g, o])

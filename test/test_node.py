@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import REPO, status_values, wait_for
+from conftest import REPO, assert_output_like_input, status_values, wait_for
 
 from gp_ground_segmentation import GroundSegmenter, SegmenterParams
 from gp_ground_segmentation.cloud import make_cloud, point_rows
@@ -81,12 +81,8 @@ def test_partition_header_fields_and_diagnostics(kitti_msgs, ros_harness):
         rows = point_rows(msg)
         valid = _valid(msg)
         for out in (ground, obstacles):
-            assert out.header.frame_id == msg.header.frame_id == 'velodyne'
-            assert out.header.stamp == msg.header.stamp
-            assert [(f.name, f.offset, f.datatype, f.count) for f in out.fields] == \
-                [(f.name, f.offset, f.datatype, f.count) for f in msg.fields]
-            assert out.point_step == msg.point_step and out.is_bigendian == msg.is_bigendian
-            assert out.height == 1 and out.row_step == out.width * out.point_step
+            assert_output_like_input(msg, out)
+            assert out.header.frame_id == 'velodyne'
         g_rows, o_rows = point_rows(ground), point_rows(obstacles)
         assert ground.width + obstacles.width == int(valid.sum())
         both = np.concatenate([g_rows, o_rows])

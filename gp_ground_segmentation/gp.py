@@ -168,35 +168,43 @@ class FrameGP:
         a = k.copy()
         a_diag = a.reshape(a.shape[0], -1)[:, ::a.shape[-1] + 1]  # a view of every diagonal
         a_diag += diagonal
-        jitter = 0.0
+        factorised = None
         if USE_COMPILED:
-            a_inv = a.copy()
+            a_inv = a.copy()  # the kernel inverts in place; `a` stays intact for the fallback
             ok, logdets, alpha = _compiled_inverse(a_inv, self.z)
             if ok.all():
-                logdet = float(logdets.sum())
-                a_diag = None  # done: no numpy factorisation needed
-        if a_diag is not None:
-            for attempt in range(6):
-                try:
-                    chol = np.linalg.cholesky(a)
-                    break
-                except np.linalg.LinAlgError:
-                    step = max(jitter * 99.0, 1e-8 * theta[0] ** 2 + 1e-10)  # x100 each time
-                    a_diag += step
-                    jitter += step
-                    self.cholesky_fallbacks += 1
-            else:
-                raise np.linalg.LinAlgError('kernel matrix not positive definite even with '
-                                            'jitter')
-            diag = np.diagonal(chol, axis1=1, axis2=2)
-            logdet = 2.0 * np.log(diag).sum()
-            a_inv = np.linalg.inv(a)
-            alpha = np.einsum('sij,sj->si', a_inv, self.z)
+                factorised = a_inv, float(logdets.sum()), alpha, 0.0
+        if factorised is None:
+            factorised = self._numpy_factorise(a, a_diag, theta)
+        a_inv, logdet, alpha, jitter = factorised
         lml = -0.5 * (float(np.einsum('si,si->', self.z, alpha)) + logdet
                       + self.num_points * LOG_2PI)
         sol = GPSolution(theta, alpha, a_inv, lml, jitter, k)
         self._cache = (key, sol)
         return sol
+
+    def _numpy_factorise(self, a, a_diag, theta):
+        """Stacked numpy Cholesky (for PD check and log|A|) and inverse, with jitter retries.
+
+        ``a_diag`` is a writable view of the diagonals of ``a``; jitter grows x100 per retry
+        and every retry is counted in ``cholesky_fallbacks``.
+        Returns (A^-1, log|A| summed over segments, alpha = A^-1 z, jitter added).
+        """
+        jitter = 0.0
+        for _ in range(6):
+            try:
+                chol = np.linalg.cholesky(a)
+                break
+            except np.linalg.LinAlgError:
+                step = max(jitter * 99.0, 1e-8 * theta[0] ** 2 + 1e-10)
+                a_diag += step
+                jitter += step
+                self.cholesky_fallbacks += 1
+        else:
+            raise np.linalg.LinAlgError('kernel matrix not positive definite even with jitter')
+        logdet = 2.0 * np.log(np.diagonal(chol, axis1=1, axis2=2)).sum()
+        a_inv = np.linalg.inv(a)
+        return a_inv, logdet, np.einsum('sij,sj->si', a_inv, self.z), jitter
 
     def lml_and_gradient(self, log_theta):
         """J and dJ/dlog(theta) (3,), the objective of the hyperparameter search."""

@@ -16,7 +16,7 @@ package_name = 'gp_ground_segmentation'
 setup(
     name=package_name,
     version='0.1.0',
-    packages=find_packages(exclude=['test', 'test.*']),
+    packages=find_packages(exclude=['test', 'test.*', 'scenes', 'scenes.*', 'benchmarks']),
     data_files=[
         ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
         ('share/' + package_name, ['package.xml']),
@@ -52,8 +52,8 @@ setup(
     tests_require=['pytest'],
     entry_points={
         'console_scripts': [
-            'ground_segmentation_node = gp_ground_segmentation.node:main',
-            'gp-ground-seg = gp_ground_segmentation.cli:main',
+            'ground_segmentation_node = gp_ground_segmentation.ros.node:main',
+            'gp-ground-seg = gp_ground_segmentation.tools.cli:main',
         ],
     },
 )

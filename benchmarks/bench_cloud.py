@@ -18,9 +18,9 @@ from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from gp_ground_segmentation.cloud import (cloud_xyz, make_cloud, read_cloud,  # noqa: E402
-                                          subset_cloud)
-from gp_ground_segmentation.io import lzf_decompress, read_points_file  # noqa: E402
+from gp_ground_segmentation.ros.cloud import (  # noqa: E402
+    cloud_xyz, make_cloud, read_cloud, subset_cloud)
+from gp_ground_segmentation.tools.io import lzf_decompress, read_points_file  # noqa: E402
 
 DEFAULT = (Path(__file__).resolve().parents[1].parent / 'shared' / 'data'
            / 'kitti_unlabeled_patchworkpp_000000.bin')

@@ -20,7 +20,7 @@ from common import (REPO, command_line, load_labeled_kitti, machine_markdown, ma
                     real_frames, update_results_section)
 
 from gp_ground_segmentation import GroundSegmenter  # noqa: E402 (path via common)
-from gp_ground_segmentation.evaluation import truth_metrics  # noqa: E402
+from gp_ground_segmentation.tools.evaluation import truth_metrics  # noqa: E402
 
 
 def direct_heights(result):
@@ -56,14 +56,14 @@ class _Row:
 
 
 def _one_segment(gp, s):
-    from gp_ground_segmentation.gp import FrameGP
+    from gp_ground_segmentation.core.gp import FrameGP
     row = _Row(gp, s)
     row.predict = FrameGP.predict.__get__(row)
     return row
 
 
 def _one_solution(sol, s):
-    from gp_ground_segmentation.gp import GPSolution
+    from gp_ground_segmentation.core.gp import GPSolution
     return GPSolution(sol.theta, sol.alpha[s:s + 1], sol.a_inv[s:s + 1], sol.lml, sol.jitter,
                       sol.kernel[s:s + 1])
 

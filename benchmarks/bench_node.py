@@ -88,7 +88,7 @@ class NodeBench:
         from sensor_msgs.msg import PointCloud2
 
         sys.path.insert(0, str(REPO))
-        from gp_ground_segmentation.node import GroundSegmentationNode
+        from gp_ground_segmentation.ros.node import GroundSegmentationNode
 
         self.context = rclpy.Context()
         rclpy.init(context=self.context)
@@ -104,7 +104,7 @@ class NodeBench:
         self.peer.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag, 10)
         # Outputs are consumed (so the node really publishes to a matched subscriber) but only
         # counted: keeping them would make this process's RSS grow by design.
-        from gp_ground_segmentation.node import OUTPUT_QOS
+        from gp_ground_segmentation.ros.node import OUTPUT_QOS
         self.peer.create_subscription(PointCloud2, 'ground', self._on_output, OUTPUT_QOS)
         self.pub = self.peer.create_publisher(
             PointCloud2, 'points', QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))

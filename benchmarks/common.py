@@ -6,10 +6,11 @@ file is absent, so a benchmark runs on whatever is there):
 
 * ``kitti_labeled``  the SemanticKITTI-labelled scan (123,389 points), per-point truth;
 * ``kitti00_bag``    the 6 KITTI 00 PointCloud2 frames of the mcap bag, read with rosbags and
-                     decoded with ``gp_ground_segmentation.cloud`` (the node's decoder); no labels;
+                     decoded with ``gp_ground_segmentation.ros.cloud`` (the node's decoder);
+                     no labels;
 * ``kitti_unlabeled`` the single KITTI .bin (it is byte-for-byte frame 0 of the bag);
 * ``vlp16`` / ``vlp32`` / ``xt32`` single indoor scans of other sensors (PCD), no labels;
-* synthetic scenes of ``gp_ground_segmentation.synthetic`` with exact truth, grouped as
+* synthetic scenes of ``scenes.synthetic`` with exact truth, grouped as
   flat (``flat``, ``crowned_curb``), sloped (``ramp10/15/20``, ``onslope15``, ``hill``) and mixed.
 
 Every frame's ``points`` is an ``(N, 4)`` C-contiguous float32 array x, y, z (m), intensity: the
@@ -17,8 +18,9 @@ one array every method is fed. Intensity is KITTI remission (0..1) for the KITTI
 synthetic reflectance for the scenes, a uint8 intensity / 255 for the VLP-16 and 0 where the file
 has none (``has_intensity`` False then).
 
-Scoring is ``gp_ground_segmentation.evaluation`` for everyone: SemanticKITTI ground classes 40, 44,
-48, 49, 60, 72; 0 unlabeled and 1 outlier ignored; 70 vegetation non-ground. Synthetic truth is
+Scoring is ``gp_ground_segmentation.tools.evaluation`` for everyone: SemanticKITTI ground
+classes 40, 44, 48, 49, 60, 72; 0 unlabeled and 1 outlier ignored; 70 vegetation non-ground.
+Synthetic truth is
 ``is_ground`` (terrain surface, curb faces included as ground, as SemanticKITTI labels curbs
 sidewalk). Metrics of several frames are pooled (summed TP/FP/FN), not averaged.
 """
@@ -42,7 +44,8 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-from gp_ground_segmentation.evaluation import ground_truth_from_labels, truth_metrics  # noqa: E402
+from gp_ground_segmentation.tools.evaluation import (  # noqa: E402
+    ground_truth_from_labels, truth_metrics)
 
 DATA_DIR = REPO.parent / 'shared' / 'data'
 LABELED_BIN = 'kitti_sequnknown_spvnas_000000.bin'
@@ -116,7 +119,7 @@ def _missing(path: Path) -> bool:
 
 def load_labeled_kitti(data_dir: Path = DATA_DIR) -> Optional[Dataset]:
     """The SemanticKITTI-labelled scan with its truth (vegetation non-ground)."""
-    from gp_ground_segmentation.io import read_kitti_bin, read_semantickitti_labels
+    from gp_ground_segmentation.tools.io import read_kitti_bin, read_semantickitti_labels
     bin_path, label_path = data_dir / LABELED_BIN, data_dir / LABELED_LABEL
     if _missing(bin_path) or _missing(label_path):
         return None
@@ -130,7 +133,7 @@ def load_labeled_kitti(data_dir: Path = DATA_DIR) -> Optional[Dataset]:
 
 def load_unlabeled_kitti(data_dir: Path = DATA_DIR) -> Optional[Dataset]:
     """The single unlabeled KITTI scan (= frame 0 of the bag)."""
-    from gp_ground_segmentation.io import read_kitti_bin
+    from gp_ground_segmentation.tools.io import read_kitti_bin
     path = data_dir / UNLABELED_BIN
     if _missing(path):
         return None
@@ -143,7 +146,8 @@ def load_bag_frames(data_dir: Path = DATA_DIR, topic: str = BAG_TOPIC) -> Option
     """The PointCloud2 frames of the KITTI 00 mcap bag, decoded as the node decodes them.
 
     rosbags reads and deserializes (its typestore knows sensor_msgs); the message is then decoded
-    by ``gp_ground_segmentation.cloud.read_cloud`` / ``cloud_xyz`` (duck-typed), intensity kept.
+    by ``gp_ground_segmentation.ros.cloud.read_cloud`` / ``cloud_xyz`` (duck-typed),
+    intensity kept.
     """
     path = data_dir / BAG_DIR
     if _missing(path):
@@ -154,7 +158,7 @@ def load_bag_frames(data_dir: Path = DATA_DIR, topic: str = BAG_TOPIC) -> Option
     except ImportError as exc:
         print(f'[data] skipped bag: rosbags not importable ({exc})', file=sys.stderr)
         return None
-    from gp_ground_segmentation.cloud import cloud_xyz, read_cloud
+    from gp_ground_segmentation.ros.cloud import cloud_xyz, read_cloud
     frames = []
     with AnyReader([path], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
         conns = [c for c in reader.connections if c.topic == topic]
@@ -172,7 +176,7 @@ def load_bag_frames(data_dir: Path = DATA_DIR, topic: str = BAG_TOPIC) -> Option
 
 def load_sensor_pcds(data_dir: Path = DATA_DIR) -> list:
     """VLP-16, VLP-32C, PandarXT-32 scans: one single-frame Dataset each (indoor, low mount)."""
-    from gp_ground_segmentation.io import read_points_file
+    from gp_ground_segmentation.tools.io import read_points_file
     out = []
     for name, rel in SENSOR_PCDS:
         path = data_dir / rel
@@ -194,7 +198,7 @@ def load_sensor_pcds(data_dir: Path = DATA_DIR) -> list:
 def load_synthetic(names, group: str, seed: int = 0) -> Optional[Dataset]:
     """Synthetic HDL-64E-like scans of ``names`` (``synthetic.simulate_scan``), exact truth."""
     try:
-        from gp_ground_segmentation import synthetic
+        from scenes import synthetic
     except ImportError as exc:
         print(f'[data] skipped synthetic scenes: {exc}', file=sys.stderr)
         return None

@@ -1,7 +1,12 @@
-"""Gaussian-process ground segmentation for sloped terrain (Mehrabi & Taghirad, ICRoM 2021)."""
+"""Gaussian-process ground segmentation for sloped terrain (Mehrabi & Taghirad, ICRoM 2021).
 
-from .params import SegmenterParams, describe_params
-from .segmenter import GroundSegmenter, Hyperparameters, SegmentationResult, valid_points_mask
+Layout: ``core`` (numpy/scipy/numba only, no ROS), ``ros`` (PointCloud2 conversion, the node,
+diagnostics, parameter loading; needs rclpy), ``tools`` (bag replay, evaluation, plots, CLI).
+The public API below is the core's.
+"""
+
+from .core.params import SegmenterParams, describe_params
+from .core.segmenter import GroundSegmenter, Hyperparameters, SegmentationResult, valid_points_mask
 
 __all__ = ['GroundSegmenter', 'Hyperparameters', 'SegmentationResult', 'SegmenterParams',
            'describe_params', 'valid_points_mask']

@@ -73,7 +73,7 @@ class RosHarness:
         from rclpy.qos import QoSProfile, ReliabilityPolicy
         from sensor_msgs.msg import PointCloud2
 
-        from gp_ground_segmentation.node import OUTPUT_QOS, GroundSegmentationNode
+        from gp_ground_segmentation.ros.node import OUTPUT_QOS, GroundSegmentationNode
 
         self.context = rclpy.Context()
         rclpy.init(args=context_args, context=self.context)

@@ -28,7 +28,7 @@ def _cloud():
         with AnyReader([BAG]) as reader:
             for _, _, raw in reader.messages():
                 return deserialize_message(raw, PointCloud2), 'KITTI frame from the shared bag'
-    from gp_ground_segmentation.cloud import make_cloud
+    from gp_ground_segmentation.ros.cloud import make_cloud
     rng = np.random.default_rng(0)
     r, a = rng.uniform(3, 40, 20000), rng.uniform(-np.pi, np.pi, 20000)
     xyz = np.stack([r * np.cos(a), r * np.sin(a), -1.7 + 0.03 * r * np.cos(a)], 1)

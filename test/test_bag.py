@@ -46,7 +46,7 @@ def read_bag(path, topic=None):
 
 
 def rows(msg):
-    from gp_ground_segmentation.cloud import point_rows
+    from gp_ground_segmentation.ros.cloud import point_rows
     return np.ascontiguousarray(point_rows(msg))
 
 
@@ -74,15 +74,15 @@ def input_frames():
 
 @pytest.fixture(scope='module')
 def replayed(tmp_path_factory):
-    from gp_ground_segmentation.bag import replay
+    from gp_ground_segmentation.tools.bag import replay
     out = tmp_path_factory.mktemp('replay') / 'nested' / 'out_bag'  # parent dirs created
     summary = replay([BAG], out)
     return out, summary
 
 
 def test_counts_headers_and_partition(replayed, input_frames):
-    from gp_ground_segmentation.pipeline import process_cloud
-    from gp_ground_segmentation.segmenter import GroundSegmenter
+    from gp_ground_segmentation.ros.pipeline import process_cloud
+    from gp_ground_segmentation.core.segmenter import GroundSegmenter
 
     out, summary = replayed
     assert summary.frames == len(input_frames) == 6 and summary.skipped == 0
@@ -126,7 +126,7 @@ def test_summary_table_lists_stages_and_theta(replayed):
 
 
 def test_cli_refuses_overwrite_then_force_replaces(tmp_path, capsys):
-    from gp_ground_segmentation.cli import main
+    from gp_ground_segmentation.tools.cli import main
     out = tmp_path / 'out'
     out.mkdir()
     (out / 'marker').write_text('old')
@@ -146,7 +146,7 @@ def test_cli_refuses_overwrite_then_force_replaces(tmp_path, capsys):
 
 
 def test_sqlite3_storage(tmp_path, input_frames):
-    from gp_ground_segmentation.cli import main
+    from gp_ground_segmentation.tools.cli import main
     out = tmp_path / 'sq'
     assert main(['replay', str(BAG), str(out), '--storage', 'sqlite3', '--max-frames', '2']) == 0
     assert (out / 'sq.db3').exists()
@@ -160,7 +160,7 @@ def test_sqlite3_storage(tmp_path, input_frames):
 def test_progress_bar_only_on_a_tty():
     import io
 
-    from gp_ground_segmentation.bag import Progress
+    from gp_ground_segmentation.tools.bag import Progress
 
     class Tty(io.StringIO):
         def isatty(self):
@@ -177,8 +177,8 @@ def test_progress_bar_only_on_a_tty():
 
 
 def test_interrupted_replay_leaves_no_bag(tmp_path, monkeypatch):
-    import gp_ground_segmentation.pipeline as pipeline
-    from gp_ground_segmentation.bag import replay
+    import gp_ground_segmentation.ros.pipeline as pipeline
+    from gp_ground_segmentation.tools.bag import replay
     real = pipeline.process_cloud
     calls = []
 
@@ -201,7 +201,7 @@ def test_bad_frame_is_skipped_and_reported(tmp_path, input_frames):
     from rosbags.typesys import Stores, get_typestore
     from sensor_msgs.msg import PointCloud2
 
-    from gp_ground_segmentation.bag import replay
+    from gp_ground_segmentation.tools.bag import replay
     src = tmp_path / 'in'
     ts = get_typestore(Stores.ROS2_JAZZY)
     with Writer(src, version=9, storage_plugin=StoragePlugin.MCAP) as w:
@@ -222,7 +222,7 @@ def test_bad_frame_is_skipped_and_reported(tmp_path, input_frames):
 
 
 def test_point_file_directory_input(tmp_path):
-    from gp_ground_segmentation.cli import main
+    from gp_ground_segmentation.tools.cli import main
     src = tmp_path / 'scans'
     src.mkdir()
     bins = [DATA / 'kitti_unlabeled_patchworkpp_000000.bin',
@@ -249,7 +249,7 @@ def test_ros1_bag_input(tmp_path, input_frames):
     from rosbags.rosbag1 import Writer
     from rosbags.typesys import Stores, get_typestore
 
-    from gp_ground_segmentation.bag import replay
+    from gp_ground_segmentation.tools.bag import replay
     ts = get_typestore(Stores.ROS1_NOETIC)
     T = ts.types
     path = tmp_path / 'in.bag'
@@ -346,7 +346,7 @@ BAD_KINDS = ['truncated_mcap', 'corrupt_file', 'corrupt_chunk', 'empty_bag',
 
 @pytest.mark.parametrize('kind', BAD_KINDS)
 def test_bad_input_one_line_exit_2(kind, tmp_path, capsys):
-    from gp_ground_segmentation.cli import main
+    from gp_ground_segmentation.tools.cli import main
     bad, expected = _make_bad(kind, tmp_path)
     before = sorted(p.name for p in tmp_path.iterdir())
     out = tmp_path / 'out'
@@ -362,7 +362,7 @@ def test_bad_input_one_line_exit_2(kind, tmp_path, capsys):
 
 
 def test_missing_topic_lists_the_bag_topics(tmp_path, capsys):
-    from gp_ground_segmentation.cli import main
+    from gp_ground_segmentation.tools.cli import main
     assert main(['replay', str(BAG), str(tmp_path / 'o'), '--topic', '/points']) == 2
     err = capsys.readouterr().err
     assert 'topic /points not in bag' in err and '/velodyne_points [sensor_msgs/msg/PointCloud2]' \
@@ -372,7 +372,7 @@ def test_missing_topic_lists_the_bag_topics(tmp_path, capsys):
 def test_subprocess_truncated_bag_no_traceback(tmp_path):
     bad, _ = _make_bad('truncated_mcap', tmp_path)
     env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get('PYTHONPATH', ''))
-    proc = subprocess.run([sys.executable, '-m', 'gp_ground_segmentation.cli', 'replay',
+    proc = subprocess.run([sys.executable, '-m', 'gp_ground_segmentation.tools.cli', 'replay',
                            str(bad), str(tmp_path / 'out')], capture_output=True, text=True,
                           env=env, timeout=120)
     assert proc.returncode == 2

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gp_ground_segmentation.cli import main
+from gp_ground_segmentation.tools.cli import main
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / 'shared' / 'data'
@@ -130,10 +130,10 @@ def test_plot_shipped_sample_bag_frame(tmp_path):
 
 def test_plot_side_view_data_comes_from_details():
     """The side view shows the segmenter's own candidates, lines and GP curve."""
-    from gp_ground_segmentation.bag import read_frame
-    from gp_ground_segmentation.cloud import cloud_xyz, read_cloud
-    from gp_ground_segmentation.plot import default_segment, segment_view
-    from gp_ground_segmentation.segmenter import GroundSegmenter
+    from gp_ground_segmentation.tools.bag import read_frame
+    from gp_ground_segmentation.ros.cloud import cloud_xyz, read_cloud
+    from gp_ground_segmentation.tools.plot import default_segment, segment_view
+    from gp_ground_segmentation.core.segmenter import GroundSegmenter
     msg, _ = read_frame(f'{SAMPLE}:0')
     xyz = cloud_xyz(read_cloud(msg))
     seg = GroundSegmenter()

@@ -1,5 +1,5 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Tests for gp_ground_segmentation.cloud: PointCloud2 <-> numpy on hand-built and random layouts.
+"""Tests for gp_ground_segmentation.ros.cloud: PointCloud2 <-> numpy, hand-built and random.
 
 Messages are built in memory with the rclpy message classes; no rclpy.init() is needed.
 The reference decoder below uses the struct module point by point, independent of numpy dtypes.
@@ -17,9 +17,9 @@ from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import Header
 from builtin_interfaces.msg import Time
 
-from gp_ground_segmentation.cloud import (POINTFIELD_DTYPES, CloudFormatError, cloud_xyz,
-                                          fields_dtype, make_cloud, point_rows, read_cloud,
-                                          subset_cloud)
+from gp_ground_segmentation.ros.cloud import (
+    POINTFIELD_DTYPES, CloudFormatError, cloud_xyz, fields_dtype, make_cloud, point_rows,
+    read_cloud, subset_cloud)
 
 DATA = Path(__file__).resolve().parents[1].parent / 'shared' / 'data'
 STRUCT_CHARS = {1: 'b', 2: 'B', 3: 'h', 4: 'H', 5: 'i', 6: 'I', 7: 'f', 8: 'd'}

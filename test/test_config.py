@@ -9,10 +9,9 @@ import yaml
 from conftest import REPO
 
 from gp_ground_segmentation import SegmenterParams, describe_params
-from gp_ground_segmentation.config import (NODE_NAME, NODE_PARAMS, ParameterConfigError,
-                                           all_param_specs, load_params_file,
-                                           node_param_defaults, render_params_table,
-                                           render_params_yaml)
+from gp_ground_segmentation.ros.config import (
+    NODE_NAME, NODE_PARAMS, ParameterConfigError, all_param_specs, load_params_file,
+    node_param_defaults, render_params_table, render_params_yaml)
 
 PARAMS_YAML = REPO / 'config' / 'params.yaml'
 
@@ -35,7 +34,7 @@ def test_shipped_yaml_lists_exactly_all_params_with_defaults():
 
 
 def test_shipped_yaml_is_the_generated_text():
-    # Regenerate with: python -c "from gp_ground_segmentation.config import render_params_yaml
+    # Regenerate with: python -c "from gp_ground_segmentation.ros.config import render_params_yaml
     # as r; print(r(), end='')" > config/params.yaml
     assert PARAMS_YAML.read_text() == render_params_yaml()
 

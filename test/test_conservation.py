@@ -23,8 +23,8 @@ from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import Header
 
 from gp_ground_segmentation import GroundSegmenter
-from gp_ground_segmentation.cloud import point_rows
-from gp_ground_segmentation.pipeline import process_cloud
+from gp_ground_segmentation.ros.cloud import point_rows
+from gp_ground_segmentation.ros.pipeline import process_cloud
 
 _TYPES = {1: 'i1', 2: 'u1', 3: 'i2', 4: 'u2', 5: 'i4', 6: 'u4', 7: 'f4', 8: 'f8'}
 SEGMENTER = GroundSegmenter()

@@ -6,8 +6,8 @@ import math
 import numpy as np
 import pytest
 
-from gp_ground_segmentation.evaluation import (GROUND_CLASSES, IGNORED_CLASSES, ground_metrics,
-                                               ground_truth_from_labels, truth_metrics)
+from gp_ground_segmentation.tools.evaluation import (
+    GROUND_CLASSES, IGNORED_CLASSES, ground_metrics, ground_truth_from_labels, truth_metrics)
 
 
 def test_truth_metrics_hand_computed():

@@ -14,6 +14,6 @@ def test_flake8_clean():
     pytest.importorskip('flake8')
     result = subprocess.run(
         [sys.executable, '-m', 'flake8', '--max-line-length', '99',
-         'gp_ground_segmentation', 'test', 'benchmarks', 'setup.py'],
+         'gp_ground_segmentation', 'scenes', 'test', 'benchmarks', 'setup.py'],
         cwd=ROOT, capture_output=True, text=True)
     assert result.returncode == 0, result.stdout + result.stderr

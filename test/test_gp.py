@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 from scipy.stats import multivariate_normal
 
-from gp_ground_segmentation import gp as gp_module
-from gp_ground_segmentation import gp_compiled
-from gp_ground_segmentation.gp import FrameGP, length_scale_factors, paciorek_kernel
+from gp_ground_segmentation.core import gp as gp_module
+from gp_ground_segmentation.core import gp_compiled
+from gp_ground_segmentation.core.gp import FrameGP, length_scale_factors, paciorek_kernel
 
 BOUNDS = [(0.01, 20.0), (0.05, 200.0), (0.005, 2.0)]
 

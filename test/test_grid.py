@@ -12,7 +12,7 @@ import math
 import numpy as np
 import pytest
 
-from gp_ground_segmentation.grid import build_grid, relative_density, segment_of
+from gp_ground_segmentation.core.grid import build_grid, relative_density, segment_of
 
 
 # --------------------------------------------------------------------------------------------

@@ -1,5 +1,5 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Tests for gp_ground_segmentation.io: KITTI .bin/.label and PCD (ascii, binary, LZF)."""
+"""Tests for gp_ground_segmentation.tools.io: KITTI .bin/.label and PCD (ascii, binary, LZF)."""
 
 import struct
 from pathlib import Path
@@ -7,8 +7,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gp_ground_segmentation.io import (PointFileError, lzf_decompress, read_kitti_bin, read_pcd,
-                                       read_points_file, read_semantickitti_labels, write_pcd)
+from gp_ground_segmentation.tools.io import (
+    PointFileError, lzf_decompress, read_kitti_bin, read_pcd, read_points_file,
+    read_semantickitti_labels, write_pcd)
 
 DATA = Path(__file__).resolve().parents[1].parent / 'shared' / 'data'
 

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from scipy.optimize import least_squares
 
-from gp_ground_segmentation.lines import deming_fit, extract_lines
+from gp_ground_segmentation.core.lines import deming_fit, extract_lines
 
 NAN = np.nan
 KW = dict(variance_ratio=1.0, max_slope=0.7, max_distance_m=0.15, max_gap_m=6.0,

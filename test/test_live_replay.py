@@ -28,7 +28,7 @@ pytestmark = pytest.mark.skipif(not BAG.is_dir(), reason=f'real data not found: 
 @pytest.fixture(scope='module')
 def bag_frames():
     """[(bag_time_ns, rclpy PointCloud2)] of the real bag, read like the replay tool reads it."""
-    from gp_ground_segmentation.bag import FrameSource
+    from gp_ground_segmentation.tools.bag import FrameSource
     with FrameSource([BAG], TOPIC) as source:
         return [(f.timestamp_ns, f.msg) for f in source]
 
@@ -41,7 +41,7 @@ def offline_bag(tmp_path_factory):
     from rosbags.highlevel import AnyReader
     from sensor_msgs.msg import PointCloud2
 
-    from gp_ground_segmentation.bag import replay
+    from gp_ground_segmentation.tools.bag import replay
     out = tmp_path_factory.mktemp('live') / 'offline'
     replay([BAG], out)
     split = {}
@@ -84,8 +84,8 @@ def _same_bytes(a, b):
 @pytest.mark.parametrize('realtime', [True, False], ids=['recorded_timing', 'fast'])
 def test_live_matches_offline_and_accounts_every_frame(realtime, bag_frames, offline_bag,
                                                        ros_harness):
-    from gp_ground_segmentation.pipeline import process_cloud
-    from gp_ground_segmentation.segmenter import GroundSegmenter
+    from gp_ground_segmentation.ros.pipeline import process_cloud
+    from gp_ground_segmentation.core.segmenter import GroundSegmenter
 
     h = ros_harness(node_kwargs=_node_kwargs())
     node = h.node

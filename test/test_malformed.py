@@ -43,8 +43,8 @@ from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import Header
 
 from gp_ground_segmentation import GroundSegmenter, SegmenterParams
-from gp_ground_segmentation.cloud import CloudFormatError, cloud_xyz, point_rows, read_cloud
-from gp_ground_segmentation.pipeline import process_cloud
+from gp_ground_segmentation.ros.cloud import CloudFormatError, cloud_xyz, point_rows, read_cloud
+from gp_ground_segmentation.ros.pipeline import process_cloud
 
 GROUND_Z = -1.73  # sensor height above the flat ground of the scenes (m)
 _CODES = {('f', 4): 7, ('f', 8): 8, ('i', 1): 1, ('u', 1): 2, ('i', 2): 3, ('u', 2): 4,
@@ -658,7 +658,7 @@ def test_throttled_log_at_two_severities_does_not_raise(harness):
 
 
 def test_throttle_key_ignores_numbers():
-    from gp_ground_segmentation.node import _problem_key
+    from gp_ground_segmentation.ros.node import _problem_key
     a = _problem_key('data has 793 bytes but height 1 * row_step 800 = 800 bytes are required')
     b = _problem_key('data has 10 bytes but height 1 * row_step 40 = 40 bytes are required')
     assert a == b

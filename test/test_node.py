@@ -21,9 +21,9 @@ import pytest
 from conftest import REPO, assert_output_like_input, status_values, wait_for
 
 from gp_ground_segmentation import GroundSegmenter, SegmenterParams
-from gp_ground_segmentation.cloud import make_cloud, point_rows
-from gp_ground_segmentation.config import ParameterConfigError, all_param_specs
-from gp_ground_segmentation.pipeline import STAGES, process_cloud
+from gp_ground_segmentation.ros.cloud import make_cloud, point_rows
+from gp_ground_segmentation.ros.config import ParameterConfigError, all_param_specs
+from gp_ground_segmentation.ros.pipeline import STAGES, process_cloud
 
 PARAMS_YAML = REPO / 'config' / 'params.yaml'
 
@@ -66,7 +66,7 @@ def _sorted_rows(rows):
 
 def _valid(msg):
     from gp_ground_segmentation import valid_points_mask
-    from gp_ground_segmentation.cloud import cloud_xyz, read_cloud
+    from gp_ground_segmentation.ros.cloud import cloud_xyz, read_cloud
     return valid_points_mask(cloud_xyz(read_cloud(msg)))
 
 
@@ -285,7 +285,7 @@ def test_params_file_values_override_defaults(tmp_path, ros_harness):
 ])
 def test_bad_params_file_fails_at_startup_naming_the_key(tmp_path, body, words):
     import rclpy
-    from gp_ground_segmentation.node import GroundSegmentationNode
+    from gp_ground_segmentation.ros.node import GroundSegmentationNode
     path = tmp_path / 'bad.yaml'
     path.write_text('ground_segmentation:\n  ros__parameters:\n' + body)
     ctx = rclpy.Context()
@@ -302,7 +302,7 @@ def test_bad_params_file_fails_at_startup_naming_the_key(tmp_path, body, words):
 def _run_node(args, env_extra=None):
     env = dict(os.environ, PYTHONUNBUFFERED='1', **(env_extra or {}))
     env['PYTHONPATH'] = os.pathsep.join([str(REPO), env.get('PYTHONPATH', '')])
-    return subprocess.Popen([sys.executable, '-m', 'gp_ground_segmentation.node', *args],
+    return subprocess.Popen([sys.executable, '-m', 'gp_ground_segmentation.ros.node', *args],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
 
 
@@ -334,7 +334,7 @@ def test_main_clean_shutdown_on_sigint():
 
 
 def test_executable_path_is_importable():
-    # The console script target exists (setup.py entry point gp_ground_segmentation.node:main).
-    from gp_ground_segmentation import node
+    # The console script target exists (setup.py entry point gp_ground_segmentation.ros.node:main).
+    from gp_ground_segmentation.ros import node
     assert callable(node.main)
     assert Path(node.__file__).name == 'node.py'

@@ -27,8 +27,8 @@ from conftest import REPO, RosHarness, wait_for
 from rclpy.parameter import Parameter, parameter_value_to_python
 
 from gp_ground_segmentation import SegmenterParams
-from gp_ground_segmentation.config import (ParameterConfigError, all_param_specs,
-                                           load_params_file)
+from gp_ground_segmentation.ros.config import (ParameterConfigError, all_param_specs,
+                                               load_params_file)
 
 SPECS = all_param_specs()
 
@@ -245,7 +245,7 @@ def context():
 
 @pytest.mark.parametrize('label, body, words', BAD_FILES, ids=[b[0] for b in BAD_FILES])
 def test_bad_params_file_node_constructor(tmp_path, context, label, body, words):
-    from gp_ground_segmentation.node import GroundSegmentationNode
+    from gp_ground_segmentation.ros.node import GroundSegmentationNode
     path = _write(tmp_path, body)
     with pytest.raises(ParameterConfigError) as info:
         GroundSegmentationNode(context=context,
@@ -262,7 +262,7 @@ def test_bad_params_file_process_exits_1_with_one_line(tmp_path):
     path = _write(tmp_path, '    line_max_gap_m: 80\n')
     env = dict(os.environ, PYTHONUNBUFFERED='1')
     env['PYTHONPATH'] = os.pathsep.join([str(REPO), env.get('PYTHONPATH', '')])
-    proc = subprocess.run([sys.executable, '-m', 'gp_ground_segmentation.node', '--ros-args',
+    proc = subprocess.run([sys.executable, '-m', 'gp_ground_segmentation.ros.node', '--ros-args',
                            '--params-file', str(path)], capture_output=True, text=True,
                           env=env, timeout=60)
     out = proc.stdout + proc.stderr

@@ -22,10 +22,10 @@ import pytest
 from conftest import status_values, wait_for
 
 from gp_ground_segmentation import GroundSegmenter, Hyperparameters, SegmenterParams
-from gp_ground_segmentation import segmenter as segmenter_module
-from gp_ground_segmentation import gp as gp_module
-from gp_ground_segmentation.gp import FrameGP, length_scale_factors
-from gp_ground_segmentation.synthetic import make_scene, simulate_scan
+from gp_ground_segmentation.core import segmenter as segmenter_module
+from gp_ground_segmentation.core import gp as gp_module
+from gp_ground_segmentation.core.gp import FrameGP, length_scale_factors
+from scenes.synthetic import make_scene, simulate_scan
 
 # Widest hyperparameter bounds SegmenterParams accepts (each field's own min/max).
 SIGMA_F = (1e-4, 1e3)  # m
@@ -384,7 +384,7 @@ def test_fallbacks_and_optimizer_failures_reach_node_diagnostics(ramp_points, mo
     from rclpy.parameter import Parameter
     from std_msgs.msg import Header
 
-    from gp_ground_segmentation.cloud import make_cloud
+    from gp_ground_segmentation.ros.cloud import make_cloud
 
     h = ros_harness(node_kwargs={'parameter_overrides': [
         Parameter('diagnostics_period_s', value=0.2)]})

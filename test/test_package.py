@@ -46,8 +46,8 @@ def _setup_kwargs():
 def test_setup_py_entry_points_and_data_files():
     kw = _setup_kwargs()
     scripts = ast.literal_eval(kw['entry_points'])['console_scripts']
-    assert f'ground_segmentation_node = {PKG}.node:main' in scripts
-    assert f'gp-ground-seg = {PKG}.cli:main' in scripts
+    assert f'ground_segmentation_node = {PKG}.ros.node:main' in scripts
+    assert f'gp-ground-seg = {PKG}.tools.cli:main' in scripts
     src = ast.unparse(kw['data_files'])
     for needle in ("'share/ament_index/resource_index/packages'", "'resource/' + package_name",
                    "'package.xml'", "'/config'", "'*.yaml'"):

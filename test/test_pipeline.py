@@ -13,10 +13,10 @@ from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import Header
 
 from gp_ground_segmentation import GroundSegmenter, SegmenterParams
-from gp_ground_segmentation.cloud import CloudFormatError, make_cloud, point_rows
-from gp_ground_segmentation.diagnostics import ProcessingWindow, diagnostics_status
-from gp_ground_segmentation.pipeline import STAGES, FrameOutput, frame_timings, process_cloud
-from gp_ground_segmentation.segmenter import Hyperparameters, SegmentationResult
+from gp_ground_segmentation.ros.cloud import CloudFormatError, make_cloud, point_rows
+from gp_ground_segmentation.ros.diagnostics import ProcessingWindow, diagnostics_status
+from gp_ground_segmentation.ros.pipeline import STAGES, FrameOutput, frame_timings, process_cloud
+from gp_ground_segmentation.core.segmenter import Hyperparameters, SegmentationResult
 
 
 def _scene(n=6000, seed=0):

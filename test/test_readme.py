@@ -4,8 +4,8 @@
 import re
 from pathlib import Path
 
-from gp_ground_segmentation.config import render_params_table
-from gp_ground_segmentation.params import describe_params
+from gp_ground_segmentation.ros.config import render_params_table
+from gp_ground_segmentation.core.params import describe_params
 
 README = Path(__file__).resolve().parents[1] / 'README.md'
 

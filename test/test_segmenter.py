@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 from gp_ground_segmentation import GroundSegmenter, SegmenterParams, valid_points_mask
-from gp_ground_segmentation.baselines import constant_height_ground, ransac_plane_ground
-from gp_ground_segmentation.evaluation import ground_metrics, truth_metrics
-from gp_ground_segmentation.io import read_kitti_bin, read_semantickitti_labels
-from gp_ground_segmentation.synthetic import make_scene, simulate_scan
+from scenes.baselines import constant_height_ground, ransac_plane_ground
+from gp_ground_segmentation.tools.evaluation import ground_metrics, truth_metrics
+from gp_ground_segmentation.tools.io import read_kitti_bin, read_semantickitti_labels
+from scenes.synthetic import make_scene, simulate_scan
 
 DATA = Path(__file__).resolve().parents[1].parent / 'shared' / 'data'
 LABELED_BIN = DATA / 'kitti_sequnknown_spvnas_000000.bin'

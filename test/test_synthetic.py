@@ -1,5 +1,5 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Tests for gp_ground_segmentation.synthetic: the simulated LiDAR and its ground truth.
+"""Tests for scenes.synthetic: the simulated LiDAR and its ground truth.
 
 The strongest check is an independent brute-force ray march (1 cm steps, obstacle hits found by
 point-in-primitive tests rather than the analytic intersections) on a random subset of rays.
@@ -10,8 +10,8 @@ import math
 import numpy as np
 import pytest
 
-from gp_ground_segmentation import synthetic as syn
-from gp_ground_segmentation.synthetic import (
+from scenes import synthetic as syn
+from scenes.synthetic import (
     HDL64_ELEVATIONS_DEG, KIND_LOW_OBSTACLE, KIND_TERRAIN, KIND_TERRAIN_STEP, SCENE_NAMES,
     Cylinder, Scene, make_scene, scan_scene, simulate_scan)
 

@@ -49,7 +49,7 @@ def segment_view(xyz: np.ndarray, result, segment: int, num_segments: int) -> di
     optionally cand_r, cand_z, critical_r, critical_z, lines [(r0, z0, r1, z1)], gp_r, gp_mean,
     gp_std, zhat_r, zhat.
     """
-    from .grid import segment_of
+    from ..core.grid import segment_of
     valid = result.valid_mask
     seg_all = np.full(len(xyz), -1)
     seg_all[valid] = segment_of(xyz[valid, 0], xyz[valid, 1], num_segments)
@@ -107,7 +107,7 @@ def _details_view(det, k: int) -> dict:
 
 def default_segment(num_segments: int) -> int:
     """The segment straight ahead of the sensor (+x axis)."""
-    from .grid import segment_of
+    from ..core.grid import segment_of
     return int(segment_of(np.array([1.0]), np.array([0.0]), num_segments)[0])
 
 
@@ -118,10 +118,10 @@ def plot_frame(msg, out_path, *, params=None, segment=None, labels=None, title='
     ``labels``: SemanticKITTI classes per point (optional). Returns a dict with the segment
     index, point count and, with labels, the metrics.
     """
-    from .cloud import cloud_xyz, read_cloud
+    from ..ros.cloud import cloud_xyz, read_cloud
     from .evaluation import ground_metrics, ground_truth_from_labels
-    from .params import SegmenterParams
-    from .segmenter import GroundSegmenter
+    from ..core.params import SegmenterParams
+    from ..core.segmenter import GroundSegmenter
 
     plt = _pyplot()  # fail early, before the (slow) segmentation
     params = params or SegmenterParams()

@@ -78,8 +78,8 @@ def cmd_eval(args) -> int:
     from .bag import load_segmenter_params
     from .evaluation import ground_metrics
     from .io import read_semantickitti_labels
-    from .pipeline import frame_timings, process_cloud
-    from .segmenter import GroundSegmenter
+    from ..ros.pipeline import frame_timings, process_cloud
+    from ..core.segmenter import GroundSegmenter
 
     if args.repeat < 1:
         raise CliError('--repeat must be at least 1')

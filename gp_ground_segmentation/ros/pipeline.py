@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .cloud import cloud_xyz, read_cloud, subset_cloud
-from .segmenter import SegmentationResult
+from ..core.segmenter import SegmentationResult
 
 __all__ = ['FrameOutput', 'process_cloud', 'input_warnings', 'STAGES', 'frame_timings']
 

@@ -58,10 +58,10 @@ from .cloud import CloudFormatError
 from .config import (NODE_NAME, NODE_PARAMS, ParameterConfigError, all_param_specs,
                      check_param_value, split_params)
 from .diagnostics import ProcessingWindow, diagnostics_array, diagnostics_status
-from . import gp, gp_compiled
-from .params import SegmenterParams
+from ..core import gp, gp_compiled
+from ..core.params import SegmenterParams
 from .pipeline import process_cloud
-from .segmenter import GroundSegmenter
+from ..core.segmenter import GroundSegmenter
 
 __all__ = ['GroundSegmentationNode', 'OUTPUT_QOS', 'main']
 

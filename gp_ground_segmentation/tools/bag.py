@@ -104,7 +104,7 @@ def _pointfile_cloud(path: Path, index: int):
     from builtin_interfaces.msg import Time
     from std_msgs.msg import Header
 
-    from .cloud import make_cloud
+    from ..ros.cloud import make_cloud
     from .io import read_points_file
     points = read_points_file(path)
     points = np.asarray(points)
@@ -386,8 +386,8 @@ class Progress:
 def load_params(params_file: Optional[str]):
     """(SegmenterParams, node params dict) from the node's YAML with the node's own loader
     (``config.load_params_file``), or the defaults when no file is given."""
-    from .config import load_params_file, node_param_defaults
-    from .params import SegmenterParams
+    from ..ros.config import load_params_file, node_param_defaults
+    from ..core.params import SegmenterParams
     if params_file is None:
         return SegmenterParams(), node_param_defaults()
     path = Path(params_file)
@@ -466,8 +466,8 @@ def replay(inputs: Sequence, out_bag, *, topic: Optional[str] = None,
     from rosbags.rosbag2 import Writer, WriterError
     from rosbags.typesys import Stores, get_typestore
 
-    from .diagnostics import ProcessingWindow
-    from .segmenter import GroundSegmenter
+    from ..ros.diagnostics import ProcessingWindow
+    from ..core.segmenter import GroundSegmenter
 
     out = Path(out_bag)
     plugin = _storage_plugin(storage)
@@ -521,9 +521,9 @@ def replay(inputs: Sequence, out_bag, *, topic: Optional[str] = None,
 def _replay_frame(frame, segmenter, writer, conns, summary, window, budget_ms,
                   serialize_message) -> None:
     """Segment one frame, write its two clouds and a DiagnosticArray built like the node's."""
-    from .cloud import CloudFormatError
-    from .diagnostics import diagnostics_array, diagnostics_status
-    from .pipeline import frame_timings, process_cloud
+    from ..ros.cloud import CloudFormatError
+    from ..ros.diagnostics import diagnostics_array, diagnostics_status
+    from ..ros.pipeline import frame_timings, process_cloud
 
     conn_ground, conn_obst, conn_diag = conns
     msg = frame.msg

@@ -17,7 +17,7 @@ import argparse
 import sys
 
 from common import (REPO, command_line, load_labeled_kitti, machine_markdown, markdown_table,
-                    score, synthetic_datasets, update_results_section)
+                    parse_param_values, score, synthetic_datasets, update_results_section)
 
 from gp_ground_segmentation import GroundSegmenter, SegmenterParams  # noqa: E402 (path via common)
 
@@ -33,13 +33,7 @@ DEFAULT_VARIANTS = (
 
 def parse_variant(text: str) -> dict:
     """'a=1 b=2.0' -> {'a': 1, 'b': 2.0}, typed like the SegmenterParams defaults."""
-    defaults = SegmenterParams()
-    out = {}
-    for item in text.split():
-        name, _, value = item.partition('=')
-        kind = type(getattr(defaults, name))
-        out[name] = (value.lower() in ('1', 'true', 'yes')) if kind is bool else kind(value)
-    return out
+    return parse_param_values(text.split())
 
 
 def main(argv=None) -> int:

@@ -812,16 +812,17 @@ def _clutter(h, rng, cars=5, poles=4, r_lo=6.0, r_hi=40.0, az=(-180.0, 180.0)):
 
 def _family_crest(rng):
     heading = rng.uniform(-180, 180)
-    crest = rng.uniform(6.0, 14.0)
-    up, down = rng.uniform(2.0, 8.0), rng.uniform(10.0, 25.0)
-    h = TerrainSum((Ramp(up, -60.0, crest, 3.0, heading),
-                    Ramp(-down, crest, crest + 40.0, 3.0, heading)))
+    crest = rng.uniform(3.0, 12.0)
+    up, down, length = rng.uniform(2.0, 8.0), rng.uniform(12.0, 30.0), rng.uniform(12.0, 40.0)
+    h = TerrainSum((Ramp(up, -60.0, crest, 2.0, heading),
+                    Ramp(-down, crest, crest + length, 2.0, heading)))
     obs = _clutter(h, rng, cars=3, poles=3, r_lo=crest + 6.0, r_hi=45.0,
                    az=(heading - 40, heading + 40))
     obs += _clutter(h, rng, cars=2, poles=2, r_lo=5.0, r_hi=20.0,
                     az=(heading + 90, heading + 270))
     return (h, obs, 'sloped', {}, f'{up:.0f} deg uphill to a crest {crest:.1f} m ahead '
-            f'(heading {heading:.0f} deg), then {down:.0f} deg downhill for 40 m; cars, poles')
+            f'(heading {heading:.0f} deg), then {down:.0f} deg downhill for {length:.0f} m to a '
+            'low flat; cars, poles')
 
 
 def _family_valley(rng):

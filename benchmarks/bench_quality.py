@@ -90,6 +90,7 @@ def load_groups(seeds: int = 3, families=None, real: bool = True, classic: bool 
         if ds is not None:
             for frame in ds.frames:
                 frame.mount_height_m = 1.73  # simulate_scan's default mount
+                frame.has_intensity = False  # made-up reflectance, as in load_family
             ds.name = 'classic'
             groups.append(ds)
     try:
@@ -450,8 +451,9 @@ def settings_text(groups) -> str:
         'ground 3-10 m from the sensor), the true mount height on synthetic scans '
         f'(0.3-2.5 m); below {LOW_MOUNT_M:g} m mounts `min_range` = {LOW_MOUNT_MIN_RANGE_M:g} m '
         '(Patchwork: also the first zone\'s `min_ranges`), otherwise their default 2.7 m. '
-        'Patchwork++ RNR (reflected-noise removal) on when the cloud has KITTI-like intensity, '
-        'off on RELLIS-3D (its intensity is normalised to ~0.012, not remission). linefit: its '
+        'Patchwork++ RNR (reflected-noise removal) on for the KITTI scans (remission intensity), '
+        'off on RELLIS-3D (its intensity is normalised to ~0.012, not remission) and on '
+        'synthetic scans (their intensity is not physically modelled). linefit: its '
         f'repository\'s kitti.toml (r_min 0.1 m) with `height` {LINEFIT_KITTI_HEIGHT_M} m on '
         'KITTI (the file\'s own value) and the mount height elsewhere. Tilted mounts: the peers '
         'get the height only (none of them takes a tilt).\n'
@@ -463,9 +465,29 @@ def settings_text(groups) -> str:
         'faces ground), (0, 0, 0) no-return rows of organised scans ignored.\n')
 
 
+def data_text(groups) -> str:
+    """A details block: every group, its frames' sizes and what each synthetic member shows."""
+    lines = ['<details><summary>Data: groups and frames</summary>', '']
+    for g in groups:
+        lines.append(f'- `{g.name}` ({g.group}, {len(g.frames)} frame(s), '
+                     f'{g.points_per_frame:,.0f} points per frame): {g.description}')
+        if g.name not in ('classic',) and g.group.startswith('synthetic'):
+            try:
+                from scenes.synthetic import family_scene
+                for frame in g.frames:
+                    seed = int(frame.name.rsplit('_', 1)[1])
+                    lines.append(f'  - `{frame.name}`: {family_scene(g.name, seed).description}')
+            except (ImportError, ValueError):
+                pass
+    lines += ['', 'Synthetic family scans: 1024 firings per revolution, HDL-64E-like beams unless '
+              'the family says otherwise, range noise 0.02 m, exact per-point truth '
+              '(`scenes.synthetic.family_scan(family, seed)`).', '', '</details>']
+    return '\n'.join(lines)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
-    ap.add_argument('--quick', action='store_true', help='1 seed per family, 1 timing round')
+    ap.add_argument('--quick', action='store_true', help='1 seed per family, 2 timing rounds')
     ap.add_argument('--seeds', type=int, default=None, help='seeds per family (default 3)')
     ap.add_argument('--families', default='', help='comma list of families (default all)')
     ap.add_argument('--methods', default=','.join(METHOD_KEYS))
@@ -477,12 +499,12 @@ def main(argv=None) -> int:
     ap.add_argument('--cv', action='store_true',
                     help='leave-one-group-out choice among defaults + variants (+ ablation)')
     ap.add_argument('--timing-rounds', type=int, default=None,
-                    help='timed rounds over the KITTI scans (default 3, --quick 1)')
+                    help='timed rounds over the KITTI scans (default 10, --quick 2)')
     ap.add_argument('--output', type=Path, default=RESULTS)
     ap.add_argument('--no-write', action='store_true', help='print only')
     args = ap.parse_args(argv)
     seeds = args.seeds if args.seeds is not None else (1 if args.quick else 3)
-    rounds = args.timing_rounds if args.timing_rounds is not None else (1 if args.quick else 3)
+    rounds = args.timing_rounds if args.timing_rounds is not None else (2 if args.quick else 10)
     keys = [k.strip() for k in args.methods.split(',') if k.strip()]
     bad = sorted(set(keys) - set(METHOD_KEYS))
     if bad or not keys or seeds < 1 or rounds < 0:
@@ -509,6 +531,7 @@ def main(argv=None) -> int:
              settings_text(groups)]
     for key, why in unavailable.items():
         parts.append(f'- **{LABELS[key]} not run**: {why}')
+    parts += ['', data_text(groups)]
     for mode in MODES:
         parts += ['', f'### Pooled per data set / family, {mode} ({MODE_TEXT[mode]})', '',
                   pooled_table(groups, results[mode], keys), '',

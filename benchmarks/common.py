@@ -208,16 +208,19 @@ def load_family(family: str, seeds) -> Optional[Dataset]:
     except ImportError as exc:
         print(f'[data] skipped synthetic families: {exc}', file=sys.stderr)
         return None
-    frames, description, group = [], '', ''
+    frames, group = [], ''
     for seed in seeds:
         member = synthetic.family_scene(family, seed)
         scan = synthetic.family_scan(family, seed)
-        frames.append(Frame(f'{family}_{seed}', np.ascontiguousarray(scan.points), True,
+        # Intensity is not physically modelled (see scenes.synthetic): flagged as absent so that
+        # intensity-based steps (Patchwork++'s RNR) are not driven by made-up values.
+        frames.append(Frame(f'{family}_{seed}', np.ascontiguousarray(scan.points), False,
                             np.asarray(scan.is_ground, dtype=bool).copy(),
                             np.asarray(scan.returned, dtype=bool).copy(),
                             member.sensor_height_m))
-        description = description or member.description
         group = member.group
+    description = (f'synthetic family {family!r}, seeds {", ".join(map(str, seeds))} (one random '
+                   'scene each)')
     return Dataset(family, frames, description, 'synthetic-' + group)
 
 

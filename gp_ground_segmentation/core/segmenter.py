@@ -1,17 +1,23 @@
 # SPDX-License-Identifier: Apache-2.0
 """GroundSegmenter: radial grid -> line-segments -> whole-frame GP -> per-point labels.
 
-Pipeline of one frame (stage names are the keys of ``SegmentationResult.timings_ms``):
+Pipeline of one frame (stage names are the keys of ``SegmentationResult.timings_ms``); [paper]
+marks the paper's steps, [ours] our additions (``additions.py``, each with a ``use_*`` switch):
 
-``grid``     valid points binned into M x N, lowest point per bin = ground candidate, rho~.
-``lines``    Algorithm 1 over each segment's candidates: line-segments, critical points, slopes.
-             Candidates on lines steeper than zeta_b are structure (walls, car fronts), not
-             ground: they do not train the GP (the paper: "large sloped line-segments relate to
-             non-ground structures").
-``gp_fit``   length scales from slope and rho~, robust rejection of outlier candidates, then
-             theta learned on the whole-frame marginal likelihood (warm-started, capped).
-``predict``  GP posterior mean and std of the ground height at every bin edge (N + 1 per
-             segment: a dense N x n kernel against every raw point would cost 100x more).
+``grid``     [paper] valid points binned into M x N, lowest point per bin = ground candidate,
+             rho~ (grid.py).
+``lines``    [paper] Algorithm 1 over each segment's candidates: line-segments, critical
+             points, slopes (lines.py). Candidates on lines steeper than zeta_b do not train
+             the GP ("large sloped line-segments relate to non-ground structures").
+             [ours] nor do candidates on elevated plateaus (``use_elevated_plateaus``).
+``gp_fit``   [paper] length scales from slope and rho~, theta learned on the whole-frame
+             marginal likelihood (eq. 14; warm-started and capped: ours).
+             [ours] the ground under the vehicle as a shared training point at r = 0
+             (``use_anchor``); leave-one-out rejection of outlier candidates before and after
+             learning (``use_outlier_rejection``).
+``predict``  [paper] GP posterior mean (and std) of the ground height, here at every bin edge
+             (N + 1 per segment: a dense N x n kernel against every raw point would cost 100x
+             more).
 ``label``    ground height of each point by linear interpolation along r between the bin
              edges of its segment; ground when z - z_hat <= threshold.
 
@@ -30,13 +36,13 @@ Choices where the paper is vague, each a parameter (see params.py):
   one-sided, as in the paper: anything below the predicted ground is ground (below-ground noise
   included -- it is not an obstacle). There is no height or range truncation anywhere.
 * The ground under the vehicle. All segments meet at r = 0, where the ground is the one the
-  vehicle stands on (also on a slope). Every segment's GP gets one shared pseudo-candidate at
-  r = 0 with the frame's estimate of that height (the median over segments of their first
-  line extrapolated to r = 0) and noise std ``anchor_std_m``. It ties the segments together,
-  so that a car parked right beside the sensor -- whose roof is the first and only nearby
-  candidate of its segments -- shows up as a step up from the vehicle's own ground and is
-  rejected, instead of becoming the ground. Segments without a single candidate predict that
-  height with the prior std sigma_f.
+  vehicle stands on (also on a slope). Every segment with a candidate gets one shared
+  pseudo-candidate at r = 0 with the frame's estimate of that height
+  (``additions.ground_under_sensor``) and noise std ``anchor_std_m``. It ties the segments
+  together, so that a car parked right beside the sensor -- whose roof is the first and only
+  nearby candidate of its segments -- shows up as a step up from the vehicle's own ground and
+  is rejected, instead of becoming the ground. Segments without a training point predict that
+  height (the GP's prior mean without the anchor) with the prior std sigma_f.
 """
 
 from __future__ import annotations

@@ -103,7 +103,7 @@ class SegmenterParams:
         0.9, 'slopes are clipped to this (< 1) so log(1/g) stays positive', 0.05, 0.999)
     density_in_flat_branch: bool = _param(
         False, 'also divide the flat-branch length scale log(1/g_d) by rho~ (continuous in g at '
-        'g_d); False is the paper\'s formula, which scored slightly higher recall in '
+        'g_d); False is the paper\'s formula, which scored higher recall on most scenes in '
         'benchmarks/sweep_params.py')
     min_length_factor: float = _param(
         0.05, 'lower clip of the length-scale factor d_i = log(1/g_i)/rho_i (dimensionless; '

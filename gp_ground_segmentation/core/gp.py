@@ -153,7 +153,6 @@ class FrameGP:
         self.segments = np.flatnonzero(counts > 0)  # rows of (M, N) that enter the batch
         n_max = int(counts.max()) if counts.size else 0
         self.n_max = n_max
-        s_count = self.segments.size
         sub = mask[self.segments]
         # stable order: training points of each segment first (the anchor first of all)
         order = np.argsort(~sub, axis=1, kind='stable')[:, :n_max]
@@ -172,13 +171,11 @@ class FrameGP:
         self.noise_var = np.where(valid, take(noise_var), 0.0)
         self.num_points = int(valid.sum())
         pair = valid[:, :, None] & valid[:, None, :]
-        self.pair = pair
         di, dj = self.d[:, :, None], self.d[:, None, :]
         sd = di * di + dj * dj
         self.prefactor = np.where(pair, np.sqrt(2.0 * di * dj / sd), 0.0)
         diff = self.r[:, :, None] - self.r[:, None, :]
         self.q = np.where(pair, diff * diff / sd, 0.0)  # (r_i - r_j)^2 / (d_i^2 + d_j^2)
-        self.eye = np.broadcast_to(np.eye(n_max, dtype=bool), (s_count, n_max, n_max))
         self.backend = resolve_backend(backend)
         self.compiled_error = None  # why the numba kernel failed, if it did (then numpy)
         self.cholesky_fallbacks = 0  # jittered retries of this object and those it came from

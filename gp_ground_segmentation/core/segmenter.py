@@ -105,7 +105,7 @@ class SegmentationDetails:
     ground_std: np.ndarray  # (M, N + 1) posterior std there (m)
     threshold: np.ndarray  # (P,) ground threshold applied to each valid point (m)
     gp: Optional[FrameGP] = None  # the frame's GP batch (rows = gp.segments), for analysis
-    gp_solution: Optional[object] = None  # its final factorisation (gp.GPSolution)
+    gp_solution: Optional[GPSolution] = None  # its final factorisation
     length_factor_at_edges: Optional[np.ndarray] = None  # (S, N + 1) d used at the bin edges
 
 

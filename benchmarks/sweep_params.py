@@ -28,6 +28,7 @@ DEFAULT_VARIANTS = (
     'num_segments=90', 'num_segments=180', 'outlier_residual_m=0.4',
     'anchor_std_m=3.0', 'plateau_step_m=10.0', 'length_scale_gain_max=200.0',
     'max_length_factor=50.0', 'density_in_flat_branch=true', 'deming_variance_ratio=0.1',
+    'use_elevated_plateaus=false', 'use_anchor=false', 'use_outlier_rejection=false',
 )
 
 

@@ -30,7 +30,8 @@ def steep_line_candidates(slope: np.ndarray, max_slope: float) -> np.ndarray:
 
 
 def elevated_plateaus(cand_r: np.ndarray, cand_z: np.ndarray, slope_before: np.ndarray, *,
-                      step_up_m: float, max_slope: float, max_gap_m: float) -> np.ndarray:
+                      step_up_m: float, max_slope: float, max_gap_m: float,
+                      start_height_m: float | None = None) -> np.ndarray:
     """(M, N) bool: candidates on a plateau entered by a steep step up (an obstacle's top).
 
     A state machine per segment over its candidates in order of r (all segments in lock-step):
@@ -46,13 +47,21 @@ def elevated_plateaus(cand_r: np.ndarray, cand_z: np.ndarray, slope_before: np.n
       obstacle or its shadow: whatever is seen beyond is ground again). The next candidate
       may enter again.
 
+    ``start_height_m``: when given, every segment starts from the ground under the sensor,
+    a virtual previous candidate at (r = 0, this height) -- so a person or a car filling a
+    segment next to the sensor is a step up from the vehicle's own ground even though no
+    ground candidate precedes it. None starts at each segment's first candidate.
+
     ``slope_before`` is ``LineSegments.slope_before``. Heights are taken relative to each
     segment's first candidate, as in ``lines.extract_lines``.
     """
-    present, rr, zz, _, _ = relative_to_first(cand_r, cand_z)
+    present, rr, zz, r0, z0 = relative_to_first(cand_r, cand_z)
     m_count, n_count = cand_r.shape
     last_r = np.full(m_count, np.nan)
     last_z = np.full(m_count, np.nan)
+    if start_height_m is not None:
+        last_r = -r0
+        last_z = start_height_m - z0
     elevated_now = np.zeros(m_count, dtype=bool)
     base_r = np.zeros(m_count)  # ground r, z and slope just before the step up
     base_z = np.zeros(m_count)
@@ -118,3 +127,35 @@ def outlier_candidates(loo_residual: np.ndarray, *, above_m: float,
     """
     with np.errstate(invalid='ignore'):
         return (loo_residual > above_m) | (loo_residual < -below_m)
+
+
+def cross_segment_rise(edges: np.ndarray, mean: np.ndarray, max_slope: float) -> np.ndarray:
+    """(M, N + 1) how much the predicted ground rises across one segment at each bin edge (m).
+
+    The GP models z(r) per segment, and a bin's candidate is its lowest point: where the ground
+    rises *across* the beams (an embankment beside the road), the candidate follows the
+    segment's low side and the high side sits above z_hat by up to the rise across the
+    segment. The rise is estimated from the neighbouring segments' ground at the same r,
+    |z_hat[m + 1](r) - z_hat[m - 1](r)| / 2 (segments wrap around), and capped at what a slope
+    of ``max_slope`` gives over the segment's width 2 pi r / M there: a steeper rise is
+    structure (or a poor fit next to it), not ground, and must not widen the threshold more.
+
+    ``edges``: (M, N + 1) r of every segment's bin edges (increasing along each row);
+    ``mean``: z_hat there.
+    """
+    m_count = edges.shape[0]
+    span = float(np.nanmax(edges)) + 1.0
+    # one sorted 1-D table of all rows (row offset by a span larger than any r): np.interp
+    # then looks up every segment's edges in its neighbour's row at once
+    offset = np.arange(m_count)[:, None] * span
+    flat_r = (edges + offset).ravel()
+    flat_z = mean.ravel()
+
+    def neighbour(shift):
+        rows = (np.arange(m_count) + shift) % m_count
+        query = np.clip(edges, edges[rows, :1], edges[rows, -1:]) + offset[rows]
+        return np.interp(query, flat_r, flat_z)
+
+    rise = 0.5 * np.abs(neighbour(1) - neighbour(-1))
+    cap = max_slope * (2.0 * np.pi / m_count) * edges
+    return np.minimum(rise, cap)

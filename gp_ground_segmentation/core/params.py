@@ -88,6 +88,10 @@ class SegmenterParams:
         0.3, 'a steep step up higher than this (m) between successive candidates starts an '
         'elevated plateau (an obstacle top whose ground is occluded), which does not train the '
         'GP; keep it above curb height', 0.05, 10.0)
+    plateau_from_sensor_ground: bool = _param(
+        True, 'ours: every segment\'s plateau test starts from the ground under the sensor '
+        '(r = 0, the anchor height), so a person or car filling a segment next to the sensor '
+        'is a step up; false starts at the segment\'s first candidate')
     line_max_gap_m: float = _param(
         6.0, 'zeta_m: radial gap (m) between successive candidates above which a line ends', 0.1,
         1000.0)
@@ -153,6 +157,15 @@ class SegmenterParams:
         0.0, 10.0)
     ground_threshold_std_factor: float = _param(
         0.0, 'multiplier of the GP predictive std added to ground_threshold_m', 0.0, 100.0)
+    use_cross_slope_threshold: bool = _param(
+        False, 'ours, not the paper\'s: widen the ground threshold by the rise of the predicted '
+        'ground across the segment (from the neighbouring segments at the same r, capped at a '
+        'cross_slope_max slope), so the high side of ground sloping across the beams stays '
+        'ground')
+    cross_slope_max: float = _param(
+        0.35, 'largest ground slope across the beams (dz per m of arc) that widens the threshold '
+        '(use_cross_slope_threshold); a steeper rise between neighbouring segments is '
+        'structure and widens it no more than this slope would', 0.0, 10.0)
     max_threshold_m: float = _param(
         0.3, 'cap (m) on the total ground threshold, however large the predictive std', 0.0, 100.0)
 

@@ -289,9 +289,14 @@ class GroundSegmenter:
         steep = has & additions.steep_line_candidates(lines.slope, p.line_max_slope)
         elevated = np.zeros_like(has)
         if p.use_elevated_plateaus:
+            start = None
+            if p.plateau_from_sensor_ground:
+                start = additions.ground_under_sensor(grid.candidate_z, has & ~steep,
+                                                      lines.line_id, lines.line_count,
+                                                      lines.intercept)
             elevated = additions.elevated_plateaus(
                 grid.candidate_r, grid.candidate_z, lines.slope_before, step_up_m=p.plateau_step_m,
-                max_slope=p.line_max_slope, max_gap_m=p.line_max_gap_m)
+                max_slope=p.line_max_slope, max_gap_m=p.line_max_gap_m, start_height_m=start)
         stats.update(candidates=int(has.sum()), steep_line_candidates=int(steep.sum()),
                      elevated_candidates=int(elevated.sum()), lines=int(lines.line_count.size))
         return has & ~steep & ~elevated
@@ -372,6 +377,16 @@ class GroundSegmenter:
         default_height = anchor.height_m if anchor is not None else gp.mean
         return _GroundModel(gp, sol, theta, trained, outliers, d, default_height)
 
+    def _threshold_at_bin_edges(self, edges, mean, std):
+        """Ground threshold (m): a scalar, or (M, N + 1) at the bin edges when it varies."""
+        p = self._params
+        threshold = p.ground_threshold_m
+        if p.ground_threshold_std_factor > 0:
+            threshold = threshold + p.ground_threshold_std_factor * std
+        if p.use_cross_slope_threshold:
+            threshold = threshold + additions.cross_segment_rise(edges, mean, p.cross_slope_max)
+        return np.minimum(threshold, p.max_threshold_m)
+
     # ------------------------------------------------------------------------------------
     def segment(self, points: np.ndarray, details: bool = False) -> SegmentationResult:
         """Label every point of one frame as ground or not; see the module docstring."""
@@ -437,12 +452,11 @@ class GroundSegmenter:
 
         t = time.perf_counter()
         z_hat = _interpolate_at_points(mean_full, grid)
-        if p.ground_threshold_std_factor > 0:
-            std = _interpolate_at_points(std_full, grid)
-            threshold = np.minimum(p.ground_threshold_m + p.ground_threshold_std_factor * std,
-                                   p.max_threshold_m)
+        edge_threshold = self._threshold_at_bin_edges(edges, mean_full, std_full)
+        if np.ndim(edge_threshold):
+            threshold = _interpolate_at_points(edge_threshold, grid)
         else:
-            threshold = min(p.ground_threshold_m, p.max_threshold_m)
+            threshold = edge_threshold
         ground[valid_index] = z - z_hat <= threshold
         height[valid_index] = z_hat
         timings['label'] = (time.perf_counter() - t) * 1e3

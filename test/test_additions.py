@@ -7,8 +7,8 @@ import pytest
 
 from gp_ground_segmentation import GroundSegmenter, SegmenterParams
 from gp_ground_segmentation.core.additions import (cross_segment_rise, elevated_plateaus,
-                                                   ground_under_sensor, outlier_candidates,
-                                                   steep_line_candidates)
+                                                   ground_under_sensor, one_point_line_slopes,
+                                                   outlier_candidates, steep_line_candidates)
 from scenes.synthetic import make_scene, simulate_scan
 
 NAN = np.nan
@@ -117,6 +117,19 @@ def test_cross_segment_rise_reads_neighbours_at_the_same_range():
     np.testing.assert_allclose(got[2], [0.2, 0.4])
 
 
+def test_one_point_lines_get_the_chord_from_the_previous_candidate():
+    """Row 0: ground at r = 2, 3 (a line, slope 0.1), then a wall candidate 1 m up at r = 4
+    (chord 1.0 / 1 m) and one at r = 4.5, 2 m up (chord 1.0 / 0.5 m = 2), an empty bin, and a
+    candidate at r = 8, 0.5 m below the last (chord |-1.5 / 3.5|). Row 1: a lone candidate
+    (first of its segment: no chord, stays NaN). Lines with a slope keep it."""
+    cand_r = np.array([[2.0, 3.0, 4.0, 4.5, NAN, 8.0], [5.0, NAN, NAN, NAN, NAN, NAN]])
+    cand_z = np.array([[0.0, 0.1, 1.1, 2.1, NAN, 0.6], [0.3, NAN, NAN, NAN, NAN, NAN]])
+    slope = np.array([[0.1, 0.1, NAN, NAN, NAN, NAN], [NAN] * 6])
+    got = one_point_line_slopes(slope, cand_r, cand_z)
+    np.testing.assert_allclose(got[0], [0.1, 0.1, 1.0, 2.0, NAN, 1.5 / 3.5])
+    assert np.isnan(got[1]).all()
+
+
 # --- ground under the sensor -----------------------------------------------------------------
 def anchor_problem():
     """3 segments x 3 bins; lines 0..4 with intercepts and counts set by hand."""
@@ -190,6 +203,8 @@ def test_each_switch_turns_its_addition_off(mixed_scan):
     no_anchor = run(pts, use_anchor=False)
     assert 'anchor_height_m' not in no_anchor.stats
     cross = run(pts, use_cross_slope_threshold=not SegmenterParams().use_cross_slope_threshold)
-    for res in (no_plateaus, no_outliers, no_anchor, cross):
+    no_chord = run(pts, use_chord_slope_for_single_points=False)
+    assert no_chord.stats['steep_line_candidates'] < base.stats['steep_line_candidates']
+    for res in (no_plateaus, no_outliers, no_anchor, cross, no_chord):
         assert not np.array_equal(res.ground_mask, base.ground_mask)  # each one matters here
         assert res.ground_mask.any() and res.obstacle_mask.any()

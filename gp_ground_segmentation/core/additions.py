@@ -159,3 +159,27 @@ def cross_segment_rise(edges: np.ndarray, mean: np.ndarray, max_slope: float) ->
     rise = 0.5 * np.abs(neighbour(1) - neighbour(-1))
     cap = max_slope * (2.0 * np.pi / m_count) * edges
     return np.minimum(rise, cap)
+
+
+def one_point_line_slopes(slope: np.ndarray, cand_r: np.ndarray,
+                          cand_z: np.ndarray) -> np.ndarray:
+    """``slope`` (M, N) with every one-point line (NaN slope) given |dz/dr| of the chord from
+    the previous candidate of its segment.
+
+    Algorithm 1 ends a line *before* it gets steeper than zeta_b, so a wall or a car front is
+    not a steep line but a string of one-point lines, and a NaN slope would read as flat
+    ground (the longest length scale, and no steep-line filter). The chord that ended the
+    previous line is the slope the data show there. (The chord to the *next* candidate was
+    measured too: it marks the last ground candidate before a crest as steep and cost the
+    crest family 0.009 F1.) A segment's first candidate keeps NaN.
+    """
+    present = np.isfinite(cand_r) & np.isfinite(cand_z)
+    col = np.where(present, np.arange(cand_r.shape[1]), -1)
+    prev = np.maximum.accumulate(col, axis=1)  # last candidate at or before each bin
+    prev = np.concatenate([np.full((prev.shape[0], 1), -1), prev[:, :-1]], axis=1)
+    safe = np.maximum(prev, 0)
+    with np.errstate(divide='ignore', invalid='ignore'):
+        chord = np.abs((cand_z - np.take_along_axis(cand_z, safe, axis=1))
+                       / (cand_r - np.take_along_axis(cand_r, safe, axis=1)))
+    chord = np.where((prev >= 0) & present & np.isfinite(chord), chord, np.nan)
+    return np.where(np.isnan(slope), chord, slope)

@@ -47,6 +47,7 @@ Choices where the paper is vague, each a parameter (see params.py):
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 from typing import NamedTuple, Optional
@@ -437,6 +438,9 @@ class GroundSegmenter:
                               variance_ratio=p.deming_variance_ratio, max_slope=p.line_max_slope,
                               max_distance_m=p.line_max_distance_m, max_gap_m=p.line_max_gap_m,
                               max_density_jump=p.line_max_density_jump)
+        if p.use_chord_slope_for_single_points:
+            lines = dataclasses.replace(lines, slope=additions.one_point_line_slopes(
+                lines.slope, grid.candidate_r, grid.candidate_z))
         training = self._training_candidates(grid, lines, stats)
         timings['lines'] = (time.perf_counter() - t) * 1e3
 

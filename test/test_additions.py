@@ -174,6 +174,16 @@ def test_outlier_thresholds_are_one_sided_each():
                                   [True, False, True, False, False])
 
 
+def test_outliers_worst_above_per_segment():
+    """Row 0: two candidates above 0.8 m, only the worse (1.2) goes; the noise spike (-1.1) is
+    dropped whatever the rest. Row 1: one above the limit, it goes. Row 2: none."""
+    loo = np.array([[0.9, 1.2, -1.1, NAN], [0.1, 0.85, 0.2, NAN], [0.1, NAN, 0.7, -0.2]])
+    got = outlier_candidates(loo, above_m=0.8, below_m=1.0, worst_above_only=True)
+    np.testing.assert_array_equal(got, [[0, 1, 1, 0], [0, 1, 0, 0], [0, 0, 0, 0]])
+    every = outlier_candidates(loo, above_m=0.8, below_m=1.0)
+    np.testing.assert_array_equal(every[0], [1, 1, 1, 0])
+
+
 def test_steep_line_mask():
     np.testing.assert_array_equal(steep_line_candidates(np.array([0.8, 0.7, NAN, 0.1]), 0.7),
                                   [True, False, False, False])

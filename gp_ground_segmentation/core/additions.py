@@ -118,15 +118,25 @@ def ground_under_sensor(cand_z: np.ndarray, training: np.ndarray, line_id: np.nd
     return float(np.median(cand_z[training]))
 
 
-def outlier_candidates(loo_residual: np.ndarray, *, above_m: float,
-                       below_m: float) -> np.ndarray:
+def outlier_candidates(loo_residual: np.ndarray, *, above_m: float, below_m: float,
+                       worst_above_only: bool = False) -> np.ndarray:
     """Mask of candidates whose leave-one-out residual z_i - mean_{-i} is an outlier.
 
     Above ``above_m``: an obstacle top, not ground. Below ``-below_m``: below-ground reflection
     noise. NaN residuals (no training candidate there) are not outliers.
+
+    ``worst_above_only``: of the candidates above ``above_m`` keep only the highest residual
+    of each segment (row). One obstacle top pulls its neighbours' leave-one-out means up or
+    down too; dropping every candidate over the limit at once also drops good ground next to
+    it (the near slope before a crest, seen between the anchor and a low far flat). Removing
+    the worst per pass is the usual iterative way.
     """
     with np.errstate(invalid='ignore'):
-        return (loo_residual > above_m) | (loo_residual < -below_m)
+        above = loo_residual > above_m
+        if worst_above_only and above.any():
+            top = np.max(np.where(np.isnan(loo_residual), -np.inf, loo_residual), axis=1)
+            above &= loo_residual >= top[:, None]
+        return above | (loo_residual < -below_m)
 
 
 def cross_segment_rise(edges: np.ndarray, mean: np.ndarray, max_slope: float) -> np.ndarray:

@@ -146,6 +146,10 @@ class SegmenterParams:
         0.8, 'a candidate whose leave-one-out GP residual is above this (m) is an obstacle top, '
         'not ground: it stops training the GP (checked before and after learning theta)',
         0.01, 100.0)
+    outlier_worst_per_segment: bool = _param(
+        True, 'ours: each outlier pass drops at most one obstacle-top candidate per segment '
+        '(the highest leave-one-out residual above outlier_residual_m), so ground next to an '
+        'obstacle top is not dropped with it; false drops all above the limit at once')
 
     use_anchor: bool = _param(
         True, 'ours, not the paper\'s: every segment\'s GP gets a shared pseudo-candidate at '

@@ -328,8 +328,9 @@ class GroundSegmenter:
         if not p.use_outlier_rejection:
             return gp, sol, outliers
         loo = gp.to_grid(gp.loo_residuals(sol), np.nan)
-        new = ~outliers & additions.outlier_candidates(loo, above_m=p.outlier_residual_m,
-                                                       below_m=p.noise_spike_m)
+        new = ~outliers & additions.outlier_candidates(
+            loo, above_m=p.outlier_residual_m, below_m=p.noise_spike_m,
+            worst_above_only=p.outlier_worst_per_segment)
         if not new.any():
             return gp, sol, outliers
         outliers = outliers | new

@@ -218,3 +218,15 @@ def test_each_switch_turns_its_addition_off(mixed_scan):
     for res in (no_plateaus, no_outliers, no_anchor, cross, no_chord):
         assert not np.array_equal(res.ground_mask, base.ground_mask)  # each one matters here
         assert res.ground_mask.any() and res.obstacle_mask.any()
+
+
+def test_prior_mean_is_the_ground_under_the_vehicle(mixed_scan):
+    params = SegmenterParams(optimizer_first_frame_evaluations=0)
+    res = GroundSegmenter(params).segment(mixed_scan.points, details=True)
+    assert res.details.gp.mean == res.stats['anchor_height_m']
+    median = GroundSegmenter(params.replace(prior_mean_at_anchor=False)).segment(
+        mixed_scan.points, details=True)
+    z = median.details.grid.candidate_z[median.details.training]
+    # FrameGP's default: the median of the training heights, the anchor counted once per segment
+    assert median.details.gp.mean != res.details.gp.mean
+    assert np.min(z) < median.details.gp.mean < np.max(z)

@@ -155,6 +155,10 @@ class SegmenterParams:
         True, 'ours, not the paper\'s: every segment\'s GP gets a shared pseudo-candidate at '
         'r = 0, the ground under the vehicle (median of the first lines\' intercepts); false '
         'leaves segments independent')
+    prior_mean_at_anchor: bool = _param(
+        True, 'ours: the GP prior mean is the height of the ground under the vehicle (the '
+        'anchor; needs use_anchor), so long gaps fall back to the vehicle\'s own ground level; '
+        'false uses the median height of the training candidates')
     anchor_std_m: float = _param(
         0.3, 'noise std (m) of the shared pseudo-candidate at r = 0 that tells every segment '
         'the height of the ground under the vehicle', 0.01, 100.0)

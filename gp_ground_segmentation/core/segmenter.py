@@ -367,10 +367,14 @@ class GroundSegmenter:
     def _fit_ground_model(self, grid: RadialGrid, lines: LineSegments, training,
                           stats: dict) -> _GroundModel:
         """Stage ``gp_fit``: length scales, the anchor, the GP, robust learning of theta."""
+        p = self._params
         d = self._length_factors(grid, lines, training)
         anchor = self._anchor(grid, lines, training, d, stats)
+        # the prior mean: the level plane through the ground under the vehicle, or the median
+        # height of the training points (FrameGP's default)
+        mean = anchor.height_m if anchor is not None and p.prior_mean_at_anchor else None
         gp = FrameGP(grid.candidate_r, grid.candidate_z, d, training, anchor=anchor,
-                     backend=self._backend)
+                     backend=self._backend, mean=mean)
         gp, sol, theta, outliers = self._fit_robustly(gp, stats)
         self._theta = Hyperparameters(*(float(v) for v in theta))
         trained = gp.to_grid(gp.valid, False) & ~outliers

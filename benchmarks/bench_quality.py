@@ -270,6 +270,19 @@ def ablation_variants() -> dict:
     return {name: dataclasses.replace(d, **change).validate() for name, change in out.items()}
 
 
+def theta_stream_variants() -> dict:
+    """Whole-frame theta learning in a stream (the paper's second idea), streamed mode only.
+
+    * first frame only: the cold start learns (``optimizer_first_frame_evaluations``), later
+      frames keep that theta -- what the per-frame evaluations add;
+    * frozen: theta never learns, not even on the first frame.
+    """
+    d = SegmenterParams()
+    return {'theta learned on the first frame only': d.replace(optimizer_max_evaluations=0),
+            'theta frozen': d.replace(optimizer_max_evaluations=0,
+                                      optimizer_first_frame_evaluations=0)}
+
+
 # ------------------------------------------------------------------------------------ running
 
 def run_all(groups, keys, modes, params=None) -> dict:
@@ -551,6 +564,14 @@ def main(argv=None) -> int:
         parts += ['', '### Variants of this project (cold; pooled F1 per group, change vs '
                   'defaults)', '', variant_table(groups, variant_results),
                   '', f'Variants took {time.perf_counter() - t0:.0f} s.']
+        if args.ablation:
+            streamed = {'defaults': results['streamed']['gp'] if 'gp' in results['streamed']
+                        else {g.name: run_frames('gp', g.frames, 'streamed') for g in groups}}
+            for name, params in theta_stream_variants().items():
+                streamed[name] = {g.name: run_frames('gp', g.frames, 'streamed', params)
+                                  for g in groups}
+            parts += ['', '### theta learning in a stream (streamed; pooled F1 per group, '
+                      'change vs defaults)', '', variant_table(groups, streamed)]
         if args.cv:
             counts = {n: {g: [{k: m[k] for k in ('tp', 'fp', 'fn', 'tn')} for m in ms]
                           for g, ms in r.items()} for n, r in variant_results.items()}

@@ -118,7 +118,7 @@ class SegmenterParams:
         0.05, 'lower clip of the length-scale factor d_i = log(1/g_i)/rho_i (dimensionless; '
         'L_i = a*d_i in m)', 1e-4, 100.0)
     max_length_factor: float = _param(
-        1.5, 'upper clip of the length-scale factor d_i (dimensionless)', 1e-2, 1e5)
+        2.0, 'upper clip of the length-scale factor d_i (dimensionless)', 1e-2, 1e5)
     sigma_f_init_m: float = _param(0.5, 'initial sigma_f, GP signal std (m)', 1e-3, 100.0)
     length_scale_gain_init: float = _param(
         2.0, 'initial a, the gain of L_i = a*d_i (m per unit d)', 1e-3, 1e3)
@@ -148,7 +148,7 @@ class SegmenterParams:
         'not ground: it stops training the GP (checked before and after learning theta)',
         0.01, 100.0)
     outlier_worst_per_segment: bool = _param(
-        True, 'ours: each outlier pass drops at most one obstacle-top candidate per segment '
+        False, 'ours: each outlier pass drops at most one obstacle-top candidate per segment '
         '(the highest leave-one-out residual above outlier_residual_m), so ground next to an '
         'obstacle top is not dropped with it; false drops all above the limit at once')
 

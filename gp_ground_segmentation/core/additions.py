@@ -9,7 +9,16 @@ Each is a function from arrays to a mask or a height and has a ``use_*`` switch 
 * :func:`ground_under_sensor` (``use_anchor``): height of the ground under the vehicle, given
   to the GP as one shared extra training point at r = 0 in every segment.
 * :func:`outlier_candidates` (``use_outlier_rejection``): leave-one-out residual tests that
-  drop below-ground reflection noise and obstacle tops from the training set.
+  drop below-ground reflection noise and obstacle tops from the training set
+  (``outlier_worst_per_segment``: at most the worst obstacle top per segment and pass; off).
+* ``start_height_m`` of :func:`elevated_plateaus` (``plateau_from_sensor_ground``): the plateau
+  test of every segment starts from the ground under the sensor.
+* :func:`one_point_line_slopes` (``use_chord_slope_for_single_points``): one-point lines get
+  the slope of the chord from the previous candidate, so walls meet the steep-line filter.
+* :func:`cross_segment_rise` (``use_cross_slope_threshold``; off): widen the ground threshold
+  by the rise of the ground across the segment.
+
+The GP prior mean at the anchor height (``prior_mean_at_anchor``) is set in the segmenter.
 
 :func:`steep_line_candidates` is the paper's reading ("large sloped line-segments relate to
 non-ground structures"), not an addition; it lives here because it is a mask over the

@@ -9,17 +9,23 @@ marks the paper's steps, [ours] our additions (``additions.py``, each with a ``u
 ``lines``    [paper] Algorithm 1 over each segment's candidates: line-segments, critical
              points, slopes (lines.py). Candidates on lines steeper than zeta_b do not train
              the GP ("large sloped line-segments relate to non-ground structures").
-             [ours] nor do candidates on elevated plateaus (``use_elevated_plateaus``).
+             [ours] nor do candidates on elevated plateaus (``use_elevated_plateaus``; the
+             test starts from the ground under the sensor, ``plateau_from_sensor_ground``);
+             one-point lines take the slope of the chord from the previous candidate
+             (``use_chord_slope_for_single_points``), so walls are steep, not flat.
 ``gp_fit``   [paper] length scales from slope and rho~, theta learned on the whole-frame
              marginal likelihood (eq. 14; warm-started and capped: ours).
              [ours] the ground under the vehicle as a shared training point at r = 0
-             (``use_anchor``); leave-one-out rejection of outlier candidates before and after
-             learning (``use_outlier_rejection``).
+             (``use_anchor``), also the GP prior mean (``prior_mean_at_anchor``);
+             leave-one-out rejection of outlier candidates before and after learning
+             (``use_outlier_rejection``).
 ``predict``  [paper] GP posterior mean (and std) of the ground height, here at every bin edge
              (N + 1 per segment: a dense N x n kernel against every raw point would cost 100x
              more).
 ``label``    ground height of each point by linear interpolation along r between the bin
-             edges of its segment; ground when z - z_hat <= threshold.
+             edges of its segment; ground when z - z_hat <= threshold ([ours, off by
+             default] widened by the ground's rise across the segment,
+             ``use_cross_slope_threshold``).
 
 Choices where the paper is vague, each a parameter (see params.py):
 

@@ -76,6 +76,19 @@ def test_plateau_heights_far_from_the_sensor():
     np.testing.assert_array_equal(got, np.asarray(expected, bool))
 
 
+def test_plateau_drop_that_stays_above_the_ground():
+    """A 2 m step up, then down 0.8 m to 1.2 m (a roof to a bonnet, still 1.2 m above the
+    ground at 0): the drop rule ends the plateau there, without it the plateau goes on until
+    the ground (0.1 <= 0 + 0.3) at r = 8."""
+    cand_r = np.array([[2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0]])
+    cand_z = np.array([[0.0, 0.0, 2.0, 2.0, 1.2, 1.2, 0.1]])
+    slope = np.full_like(cand_r, NAN)
+    with_drop = elevated_plateaus(cand_r, cand_z, slope, **PLATEAU)
+    np.testing.assert_array_equal(with_drop[0], [0, 0, 1, 1, 0, 0, 0])
+    without = elevated_plateaus(cand_r, cand_z, slope, end_on_drop=False, **PLATEAU)
+    np.testing.assert_array_equal(without[0], [0, 0, 1, 1, 1, 1, 0])
+
+
 def test_plateau_starts_from_the_ground_under_the_sensor():
     """A body filling the segment from 1 m on: without a start height its first candidate is
     the segment's first and nothing is a step up; from (r = 0, z = -1.7) the rise of 1.7 m

@@ -40,7 +40,8 @@ def steep_line_candidates(slope: np.ndarray, max_slope: float) -> np.ndarray:
 
 def elevated_plateaus(cand_r: np.ndarray, cand_z: np.ndarray, slope_before: np.ndarray, *,
                       step_up_m: float, max_slope: float, max_gap_m: float,
-                      start_height_m: float | None = None) -> np.ndarray:
+                      start_height_m: float | None = None,
+                      end_on_drop: bool = True) -> np.ndarray:
     """(M, N) bool: candidates on a plateau entered by a steep step up (an obstacle's top).
 
     A state machine per segment over its candidates in order of r (all segments in lock-step):
@@ -51,10 +52,11 @@ def elevated_plateaus(cand_r: np.ndarray, cand_z: np.ndarray, slope_before: np.n
     * leave (that candidate is not flagged) when the candidate comes back down to within
       ``step_up_m`` of the ground before the step, extrapolated from the last candidate before
       the step along ``slope_before`` there (the slope of the line that ended at the step; 0
-      when that line had fewer than two points), or drops more than ``step_up_m`` from the
-      previous candidate, or lies more than ``max_gap_m`` beyond it (the far edge of the
-      obstacle or its shadow: whatever is seen beyond is ground again). The next candidate
-      may enter again.
+      when that line had fewer than two points), or (``end_on_drop``) drops more than
+      ``step_up_m`` from the previous candidate, or lies more than ``max_gap_m`` beyond it
+      (the far edge of the obstacle or its shadow: whatever is seen beyond is ground again).
+      The next candidate may enter again. Without ``end_on_drop`` a drop that stays above the
+      ground (a roof down to a bonnet, a wall's top down to a lower wall) keeps the plateau.
 
     ``start_height_m``: when given, every segment starts from the ground under the sensor,
     a virtual previous candidate at (r = 0, this height) -- so a person or a car filling a
@@ -93,7 +95,8 @@ def elevated_plateaus(cand_r: np.ndarray, cand_z: np.ndarray, slope_before: np.n
                 base_slope = np.where(enter, line_slope, base_slope)
             if elevated_now.any():
                 back_down = z <= base_z + base_slope * (r - base_r) + step_up_m
-                leave = has & elevated_now & ((rise < -step_up_m) | back_down | (dr > max_gap_m))
+                drop = (rise < -step_up_m) if end_on_drop else np.zeros_like(has)
+                leave = has & elevated_now & (drop | back_down | (dr > max_gap_m))
                 elevated_now = (elevated_now | enter) & ~leave
             else:
                 elevated_now = enter

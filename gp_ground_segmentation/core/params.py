@@ -97,6 +97,10 @@ class SegmenterParams:
         True, 'ours: every segment\'s plateau test starts from the ground under the sensor '
         '(r = 0, the anchor height), so a person or car filling a segment next to the sensor '
         'is a step up; false starts at the segment\'s first candidate')
+    plateau_ends_on_drop: bool = _param(
+        False, 'a plateau also ends where the next candidate drops more than plateau_step_m '
+        '(the earlier rule); false ends it only back at the ground level or after a gap, so '
+        'a drop that stays above the ground (roof to bonnet, high wall to low) keeps it')
     line_max_gap_m: float = _param(
         6.0, 'zeta_m: radial gap (m) between successive candidates above which a line ends', 0.1,
         1000.0)

@@ -303,7 +303,8 @@ class GroundSegmenter:
                                                       lines.intercept)
             elevated = additions.elevated_plateaus(
                 grid.candidate_r, grid.candidate_z, lines.slope_before, step_up_m=p.plateau_step_m,
-                max_slope=p.line_max_slope, max_gap_m=p.line_max_gap_m, start_height_m=start)
+                max_slope=p.line_max_slope, max_gap_m=p.line_max_gap_m, start_height_m=start,
+                end_on_drop=p.plateau_ends_on_drop)
         stats.update(candidates=int(has.sum()), steep_line_candidates=int(steep.sum()),
                      elevated_candidates=int(elevated.sum()), lines=int(lines.line_count.size))
         return has & ~steep & ~elevated

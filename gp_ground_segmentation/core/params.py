@@ -162,8 +162,9 @@ class SegmenterParams:
         'leaves segments independent')
     prior_mean_at_anchor: bool = _param(
         True, 'ours: the GP prior mean is the height of the ground under the vehicle (the '
-        'anchor; needs use_anchor), so long gaps fall back to the vehicle\'s own ground level; '
-        'false uses the median height of the training candidates')
+        'anchor, clipped to the training candidates\' heights; needs use_anchor), so long gaps '
+        'fall back to the vehicle\'s own ground level; false uses the median height of the '
+        'training candidates')
     anchor_std_m: float = _param(
         0.3, 'noise std (m) of the shared pseudo-candidate at r = 0 that tells every segment '
         'the height of the ground under the vehicle', 0.01, 100.0)

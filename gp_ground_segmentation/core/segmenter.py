@@ -378,8 +378,13 @@ class GroundSegmenter:
         d = self._length_factors(grid, lines, training)
         anchor = self._anchor(grid, lines, training, d, stats)
         # the prior mean: the level plane through the ground under the vehicle, or the median
-        # height of the training points (FrameGP's default)
-        mean = anchor.height_m if anchor is not None and p.prior_mean_at_anchor else None
+        # height of the training points (FrameGP's default). The anchor extrapolates lines to
+        # r = 0; kept within the heights of the training candidates, so a scene seen from far
+        # away (no ground near the sensor) cannot put the prior kilometres off.
+        mean = None
+        if anchor is not None and p.prior_mean_at_anchor and training.any():
+            seen = grid.candidate_z[training]
+            mean = float(np.clip(anchor.height_m, seen.min(), seen.max()))
         gp = FrameGP(grid.candidate_r, grid.candidate_z, d, training, anchor=anchor,
                      backend=self._backend, mean=mean)
         gp, sol, theta, outliers = self._fit_robustly(gp, stats)

@@ -45,6 +45,17 @@ NODE_PARAMS = {
         'default': 50, 'type': 'int', 'min': 1, 'max': 100000, 'read_only': False,
         'description': 'number of most recent frames over which timings (mean/p95/max), '
                        'input rate and drops are reported (frames)'},
+    'publish_ground_surface': {
+        'default': True, 'type': 'bool', 'read_only': False,
+        'description': 'publish the GP ground surface on ground_surface: PointCloud2 x, y, z, '
+                       'z_std (FLOAT32, m) at the bin edges of every segment with ground '
+                       'candidates; z_std is the posterior std of the ground height itself '
+                       '(without sensor noise)'},
+    'add_height_above_ground_field': {
+        'default': False, 'type': 'bool', 'read_only': False,
+        'description': 'append a FLOAT32 height_above_ground field (z - predicted ground '
+                       'height, m) to the ground and obstacle clouds; off keeps them '
+                       'byte-for-byte copies of the input points'},
 }
 
 # Parameters every rclpy node has or may get from rclpy itself; a params file may set them.

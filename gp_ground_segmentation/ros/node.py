@@ -18,11 +18,15 @@ Topics (relative names; remap e.g. ``-r points:=/velodyne_points``):
              a RELIABLE subscriber would receive nothing from best-effort LiDAR drivers.
   ground     (pub) sensor_msgs/PointCloud2, RELIABLE, VOLATILE, keep last 1.
   obstacles  (pub) same QoS as ground.
+  ground_surface (pub) same QoS: the GP ground surface, PointCloud2 x, y, z, z_std (FLOAT32, m;
+             z_std = posterior std of the ground height without sensor noise) at the bin edges
+             of every segment with ground candidates, input header; only while
+             ``publish_ground_surface`` is true.
   /diagnostics (pub) diagnostic_msgs/DiagnosticArray, every diagnostics_period_s.
 Output QoS: a RELIABLE publisher matches both RELIABLE subscribers (RViz's and ros2 bag record's
 default) and BEST_EFFORT ones, whereas a BEST_EFFORT publisher is invisible to RELIABLE
 subscribers; depth 1 keeps the latest-wins rule downstream (a slow subscriber never makes us
-buffer old clouds); VOLATILE so no stale cloud is replayed to late joiners. All three topics
+buffer old clouds); VOLATILE so no stale cloud is replayed to late joiners. All the topics
 accept ``qos_overrides`` (history, depth, reliability) from the parameter file.
 
 Parameters: every ``SegmenterParams`` field and the node-only ones of ``config.NODE_PARAMS`` are
@@ -71,6 +75,8 @@ DIAGNOSTICS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                              reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.VOLATILE)
 _LOG_THROTTLE_S = 5.0
+# Node parameters that switch optional outputs: keywords of pipeline.process_cloud
+_OUTPUT_SWITCHES = ('publish_ground_surface', 'add_height_above_ground_field')
 _TYPES = {'float': ParameterType.PARAMETER_DOUBLE, 'int': ParameterType.PARAMETER_INTEGER,
           'bool': ParameterType.PARAMETER_BOOL}
 
@@ -166,6 +172,7 @@ class GroundSegmentationNode(Node):
         self._budget_ms = float(node_values['processing_budget_ms'])
         self._diag_period_s = float(node_values['diagnostics_period_s'])
         queue_size = int(node_values['queue_size'])
+        self._outputs = {name: bool(node_values[name]) for name in _OUTPUT_SWITCHES}
 
         self.window = ProcessingWindow(int(node_values['diagnostics_window']))
         self._segmenter = self._segmenter_factory(self._declared_params)
@@ -178,6 +185,9 @@ class GroundSegmentationNode(Node):
             qos_overriding_options=QoSOverridingOptions.with_default_policies())
         self._pub_obstacles = self.create_publisher(
             PointCloud2, 'obstacles', OUTPUT_QOS,
+            qos_overriding_options=QoSOverridingOptions.with_default_policies())
+        self._pub_surface = self.create_publisher(
+            PointCloud2, 'ground_surface', OUTPUT_QOS,
             qos_overriding_options=QoSOverridingOptions.with_default_policies())
         self._pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', DIAGNOSTICS_QOS)
         self._sub = self.create_subscription(
@@ -308,7 +318,7 @@ class GroundSegmentationNode(Node):
         frame_id = None
         try:
             frame_id = msg.header.frame_id
-            out = process_cloud(msg, self._segmenter)
+            out = process_cloud(msg, self._segmenter, **self._outputs)
             notes = list(out.warnings)
             try:
                 notes += self._stream_warnings(msg)
@@ -317,6 +327,8 @@ class GroundSegmentationNode(Node):
                 notes.append(f'input check failed: {_one_line(exc)}')
             self._pub_ground.publish(out.ground)
             self._pub_obstacles.publish(out.obstacles)
+            if out.surface is not None:
+                self._pub_surface.publish(out.surface)
             self.window.record_frame(out, frame_id, notes)
             for note in notes:
                 self._log_throttled('warning',
@@ -377,6 +389,9 @@ class GroundSegmentationNode(Node):
                 self._declared_params = self._declared_params.replace(**seg)
                 with self._cond:
                     self._pending_params = self._declared_params
+            # a new dict, not an update: the worker reads the old one whole or the new one
+            self._outputs = dict(self._outputs, **{name: bool(node[name])
+                                                   for name in _OUTPUT_SWITCHES if name in node})
             if 'processing_budget_ms' in node:
                 self._budget_ms = float(node['processing_budget_ms'])
             if 'diagnostics_window' in node:

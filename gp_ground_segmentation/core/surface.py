@@ -130,14 +130,17 @@ class GroundSurface:
         Linear interpolation along r between the bin edges of the point's segment, exactly as
         the labels' ground height; NaN outside the grid's range (see the module docstring).
         """
-        x = np.asarray(x, dtype=np.float64)
-        y = np.asarray(y, dtype=np.float64)
+        x, y = np.asarray(x), np.asarray(y)
+        # the segment in the points' own precision, as the grid found it (float32 and float64
+        # arctan2 disagree for points on a segment border)
+        angle_dtype = np.result_type(x.dtype, y.dtype, np.float32)
         shape = np.broadcast_shapes(x.shape, y.shape)
-        x, y = np.broadcast_to(x, shape).ravel(), np.broadcast_to(y, shape).ravel()
+        x, y = (np.broadcast_to(v, shape).ravel().astype(angle_dtype) for v in (x, y))
+        finite = np.isfinite(x) & np.isfinite(y)
+        seg = segment_of(np.where(finite, x, 0), np.where(finite, y, 0), self.num_segments)
+        x, y = x.astype(np.float64), y.astype(np.float64)
         z_out = np.full(x.shape, np.nan)
         std_out = np.full(x.shape, np.nan)
-        finite = np.isfinite(x) & np.isfinite(y)
-        seg = segment_of(np.where(finite, x, 0.0), np.where(finite, y, 0.0), self.num_segments)
         position = (np.hypot(x, y) - self._r_min[seg]) / self._width[seg]
         n = self.num_bins
         inside = (finite & self._has_points[seg] & (position >= -_RANGE_TOLERANCE_BINS)

@@ -202,8 +202,9 @@ class GroundSegmentationNode(Node):
                                         daemon=True)
         self._worker.start()
         self.get_logger().info(
-            f"listening on '{self._sub.topic_name}', publishing '{self._pub_ground.topic_name}'"
-            f" and '{self._pub_obstacles.topic_name}' (slot {queue_size}, budget "
+            f"listening on '{self._sub.topic_name}', publishing '{self._pub_ground.topic_name}',"
+            f" '{self._pub_obstacles.topic_name}' and '{self._pub_surface.topic_name}' (slot "
+            f'{queue_size}, budget '
             f'{self._budget_ms:g} ms)')
 
     # --- public state (read-only views, for tests and tools) --------------------------------

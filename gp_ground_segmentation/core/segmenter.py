@@ -183,18 +183,25 @@ def _ground_at_bin_edges(model: _GroundModel, edges: np.ndarray, need_std: bool)
     return mean, std, d_star
 
 
-def _ground_surface(model: _GroundModel, grid: RadialGrid, edges, mean, std) -> GroundSurface:
+def _ground_surface(model: _GroundModel, grid: RadialGrid, edges, mean, std,
+                    point_z, ground, ground_height) -> GroundSurface:
     """The frame's GroundSurface; ``std`` None: its z_std is computed when first read.
 
-    The deferred computation keeps only the model and the edges alive, not the per-point grid.
+    The deferred computations keep only the model, the edges and the (N,) result arrays alive,
+    not the per-point grid.
     """
     def compute_std():
         with _single_threaded_blas(), np.errstate(over='ignore'):
             return _ground_at_bin_edges(model, edges, need_std=True)[1]
 
+    def compute_offset():
+        if not ground.any():
+            return 0.0
+        return float(np.median(point_z[ground].astype(np.float64) - ground_height[ground]))
+
     return GroundSurface(grid.segment_r_min, grid.bin_width, grid.count.sum(axis=1) > 0, mean,
                          model.training.any(axis=1), std,
-                         compute_std if std is None else None)
+                         compute_std if std is None else None, compute_offset)
 
 
 def _interpolate_at_points(values: np.ndarray, grid: RadialGrid) -> np.ndarray:
@@ -483,6 +490,7 @@ class GroundSegmenter:
                 np.flatnonzero(valid), grid, lines, model.training, model.outliers,
                 np.where(grid.has_candidate, theta[1] * model.length_factor, np.nan), edges,
                 mean_full, std_full, threshold, model.gp, model.solution, d_star)
-        surface = _ground_surface(model, grid, edges, mean_full, std_full if need_std else None)
+        surface = _ground_surface(model, grid, edges, mean_full, std_full if need_std else None,
+                                  xyz[:, 2], ground, height)
         return SegmentationResult(ground, valid, height, self._theta, timings, stats, extra,
                                   surface, xyz[:, 2])

@@ -17,8 +17,17 @@ z_std is the posterior standard deviation of the *latent* ground height, sqrt(k*
 without the sensor noise sigma_n: it says how well the ground height is known, not how far a
 single measured ground point may scatter around it (add sigma_n^2 to the variance for that).
 
+Calibration choice, the lowest-point offset: the GP is trained on the *lowest* point of every
+bin, which lies below the ground by the lower tail of the points' noise (about 1.5 cm on the
+synthetic scans, 2-3 cm on KITTI; see benchmarks/RESULTS.md, "Ground surface"). The labels keep
+that height (``SegmentationResult.ground_height``; their threshold was chosen with it), but the
+surface is meant to be *the* ground, so its z is the GP mean plus ``lowest_point_offset``: the
+median height above the labels' z_hat of the points labelled ground in the same frame (points
+on the ground scatter symmetrically about it; no truth or constant is involved).
+
 Everything the labels do not need is computed on first access only: x, y, azimuth, and z_std when
-the threshold did not use the std (``ground_threshold_std_factor`` = 0, the default).
+the threshold did not use the std (``ground_threshold_std_factor`` = 0, the default), and the
+lowest-point offset.
 """
 
 from __future__ import annotations
@@ -44,11 +53,13 @@ class GroundSurface:
     def __init__(self, segment_r_min: np.ndarray, bin_width: np.ndarray,
                  segment_has_points: np.ndarray, mean: np.ndarray,
                  segment_supported: np.ndarray, std: Optional[np.ndarray] = None,
-                 compute_std: Optional[Callable[[], np.ndarray]] = None):
+                 compute_std: Optional[Callable[[], np.ndarray]] = None,
+                 compute_offset: Optional[Callable[[], float]] = None):
         """``segment_r_min``, ``bin_width``, ``segment_has_points``, ``segment_supported``:
         (M,) grid geometry and flags; ``mean`` (M, N + 1) posterior mean at the bin edges.
         ``std`` is the posterior std there, or None and ``compute_std()`` returns it when first
-        read (it costs a GP variance evaluation)."""
+        read (it costs a GP variance evaluation). ``compute_offset()`` returns the lowest-point
+        offset (m) when first needed; None: no offset."""
         if std is None and compute_std is None:
             raise ValueError('GroundSurface needs std or compute_std')
         self._r_min = np.asarray(segment_r_min, dtype=np.float64)
@@ -58,6 +69,7 @@ class GroundSurface:
         self._segment_supported = np.asarray(segment_supported, dtype=bool)
         self._std = std
         self._compute_std = compute_std
+        self._compute_offset = compute_offset
 
     @classmethod
     def empty(cls, num_segments: int, num_bins: int) -> 'GroundSurface':
@@ -99,10 +111,21 @@ class GroundSurface:
         """y of each prediction point in the input frame (m)."""
         return self.r * np.sin(self.azimuth)
 
-    @property
+    @cached_property
+    def lowest_point_offset(self) -> float:
+        """Height (m) of the ground above the GP mean trained on the lowest points (module
+        docstring): the median z - z_hat of the frame's ground points; 0 without them."""
+        if self._compute_offset is None:
+            return 0.0
+        offset = float(self._compute_offset())
+        self._compute_offset = None
+        return offset if np.isfinite(offset) else 0.0
+
+    @cached_property
     def z(self) -> np.ndarray:
-        """Posterior mean ground height at each prediction point (m, input frame)."""
-        return self._mean
+        """Ground height at each prediction point (m, input frame): the GP posterior mean plus
+        the lowest-point offset."""
+        return self._mean + self.lowest_point_offset
 
     @property
     def z_std(self) -> np.ndarray:
@@ -148,7 +171,7 @@ class GroundSurface:
         seg, position = seg[inside], np.clip(position[inside], 0.0, n)
         bins = np.minimum(position.astype(np.intp), n - 1)
         frac = position - bins
-        for values, out in ((self._mean, z_out), (self.z_std, std_out)):
+        for values, out in ((self.z, z_out), (self.z_std, std_out)):
             low = values[seg, bins]
             out[inside] = low + frac * (values[seg, bins + 1] - low)
         return z_out.reshape(shape), std_out.reshape(shape)

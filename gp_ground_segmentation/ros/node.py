@@ -66,7 +66,10 @@ from ..core.params import SegmenterParams
 from .pipeline import process_cloud
 from ..core.segmenter import GroundSegmenter
 
-__all__ = ['GroundSegmentationNode', 'OUTPUT_QOS', 'main']
+__all__ = ['GroundSegmentationNode', 'INPUT_TOPIC', 'OUTPUT_QOS', 'OUTPUT_TOPICS', 'main']
+
+INPUT_TOPIC = 'points'  # relative names: remap them
+OUTPUT_TOPICS = ('ground', 'obstacles', 'ground_surface')
 
 OUTPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                         reliability=ReliabilityPolicy.RELIABLE,
@@ -180,18 +183,14 @@ class GroundSegmentationNode(Node):
         self._cond = threading.Condition()
         self._slot = deque(maxlen=queue_size)
 
-        self._pub_ground = self.create_publisher(
-            PointCloud2, 'ground', OUTPUT_QOS,
-            qos_overriding_options=QoSOverridingOptions.with_default_policies())
-        self._pub_obstacles = self.create_publisher(
-            PointCloud2, 'obstacles', OUTPUT_QOS,
-            qos_overriding_options=QoSOverridingOptions.with_default_policies())
-        self._pub_surface = self.create_publisher(
-            PointCloud2, 'ground_surface', OUTPUT_QOS,
-            qos_overriding_options=QoSOverridingOptions.with_default_policies())
+        self._pub_ground, self._pub_obstacles, self._pub_surface = (
+            self.create_publisher(
+                PointCloud2, topic, OUTPUT_QOS,
+                qos_overriding_options=QoSOverridingOptions.with_default_policies())
+            for topic in OUTPUT_TOPICS)
         self._pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', DIAGNOSTICS_QOS)
         self._sub = self.create_subscription(
-            PointCloud2, 'points', self._on_cloud, qos_profile_sensor_data,
+            PointCloud2, INPUT_TOPIC, self._on_cloud, qos_profile_sensor_data,
             qos_overriding_options=QoSOverridingOptions.with_default_policies())
         self._diag_timer = self.create_timer(self._diag_period_s, self._on_diag_timer)
 

@@ -63,7 +63,7 @@ from .config import (NODE_NAME, NODE_PARAMS, ParameterConfigError, all_param_spe
                      check_param_value, is_ros_builtin, split_params)
 from .diagnostics import ProcessingWindow, diagnostics_array, diagnostics_status
 from ..core.params import SegmenterParams
-from .pipeline import process_cloud
+from .pipeline import OUTPUT_SWITCHES, process_cloud
 from ..core.segmenter import GroundSegmenter
 
 __all__ = ['GroundSegmentationNode', 'INPUT_TOPIC', 'OUTPUT_QOS', 'OUTPUT_TOPICS', 'main']
@@ -78,8 +78,6 @@ DIAGNOSTICS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                              reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.VOLATILE)
 _LOG_THROTTLE_S = 5.0
-# Node parameters that switch optional outputs: keywords of pipeline.process_cloud
-_OUTPUT_SWITCHES = ('publish_ground_surface', 'add_height_above_ground_field')
 _TYPES = {'float': ParameterType.PARAMETER_DOUBLE, 'int': ParameterType.PARAMETER_INTEGER,
           'bool': ParameterType.PARAMETER_BOOL}
 
@@ -175,7 +173,7 @@ class GroundSegmentationNode(Node):
         self._budget_ms = float(node_values['processing_budget_ms'])
         self._diag_period_s = float(node_values['diagnostics_period_s'])
         queue_size = int(node_values['queue_size'])
-        self._outputs = {name: bool(node_values[name]) for name in _OUTPUT_SWITCHES}
+        self._outputs = {name: bool(node_values[name]) for name in OUTPUT_SWITCHES}
 
         self.window = ProcessingWindow(int(node_values['diagnostics_window']))
         self._segmenter = self._segmenter_factory(self._declared_params)
@@ -391,7 +389,7 @@ class GroundSegmentationNode(Node):
                     self._pending_params = self._declared_params
             # a new dict, not an update: the worker reads the old one whole or the new one
             self._outputs = dict(self._outputs, **{name: bool(node[name])
-                                                   for name in _OUTPUT_SWITCHES if name in node})
+                                                   for name in OUTPUT_SWITCHES if name in node})
             if 'processing_budget_ms' in node:
                 self._budget_ms = float(node['processing_budget_ms'])
             if 'diagnostics_window' in node:

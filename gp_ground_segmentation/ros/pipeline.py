@@ -28,8 +28,10 @@ from .cloud import cloud_xyz, make_cloud, read_cloud, subset_cloud, with_float32
 from ..core.segmenter import SegmentationResult
 
 __all__ = ['FrameOutput', 'process_cloud', 'input_warnings', 'STAGES', 'frame_timings',
-           'surface_cloud', 'HEIGHT_FIELD', 'SURFACE_FIELDS']
+           'surface_cloud', 'HEIGHT_FIELD', 'OUTPUT_SWITCHES', 'SURFACE_FIELDS']
 
+# Node parameters (config.NODE_PARAMS) that switch the optional outputs: process_cloud keywords
+OUTPUT_SWITCHES = ('publish_ground_surface', 'add_height_above_ground_field')
 HEIGHT_FIELD = 'height_above_ground'  # name of the optional per-point field (m)
 SURFACE_FIELDS = ('x', 'y', 'z', 'z_std')  # fields of the ground surface cloud (m)
 

@@ -1,5 +1,5 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Figures a person can read: one angular segment from the side, the frame and its ground from above.
+"""Figures a person can read: one segment from the side, the frame and its ground from above.
 
 Left panel (side view, r vs z of angular segment K): the raw points of the segment coloured
 ground / obstacle, the ground candidates (lowest point per radial bin), the critical points
@@ -275,8 +275,8 @@ def _draw_surface(ax, surface, fig, reach=40.0):
     if np.count_nonzero(keep) < 3:
         ax.text(0, 0, 'no supported ground surface', ha='center')
         return
-    x, y, z, std = (np.asarray(a)[keep] for a in (surface.x, surface.y, surface.z,
-                                                   surface.z_std))
+    columns = (surface.x, surface.y, surface.z, surface.z_std)
+    x, y, z, std = (np.asarray(a)[keep] for a in columns)
     lo, hi = np.percentile(z, [1, 99])
     filled = ax.tricontourf(x, y, np.clip(z, lo, hi), levels=20, cmap='viridis')
     fig.colorbar(filled, ax=ax, label='ground height z (m)', shrink=0.85)

@@ -60,7 +60,7 @@ from .gp import FrameGP, GPSolution, GroundAnchor, length_scale_factors, resolve
 from .grid import RadialGrid, build_grid, relative_density
 from .lines import LineSegments, extract_lines
 from .params import SegmenterParams
-from .surface import GroundSurface
+from .surface import GroundSurface, ground_offsets
 
 _OUTLIER_NOISE_VAR = 1e4  # m^2: a rejected candidate's noise variance (std 100 m)
 _blas = None  # threadpoolctl controller, made on first use (after scipy has loaded its BLAS)
@@ -183,21 +183,26 @@ def _ground_at_bin_edges(model: _GroundModel, edges: np.ndarray, need_std: bool)
     return mean, std, d_star
 
 
-def _ground_surface(model: _GroundModel, grid: RadialGrid, edges, mean, std,
-                    point_z, ground, ground_height) -> GroundSurface:
+def _ground_surface(model: _GroundModel, grid: RadialGrid, edges, mean, std, point_z, ground,
+                    ground_height, valid_index) -> GroundSurface:
     """The frame's GroundSurface; ``std`` None: its z_std is computed when first read.
 
-    The deferred computations keep only the model, the edges and the (N,) result arrays alive,
-    not the per-point grid.
+    The deferred computations keep the model, the edges, the (N,) result arrays and the points'
+    grid cells alive, not the rest of the per-point grid.
     """
+    point_segment, point_bin = grid.point_segment, grid.point_bin  # over the valid points
+    m_count, n_bins = grid.num_segments, grid.num_bins
+
     def compute_std():
         with _single_threaded_blas(), np.errstate(over='ignore'):
             return _ground_at_bin_edges(model, edges, need_std=True)[1]
 
     def compute_offset():
-        if not ground.any():
-            return 0.0
-        return float(np.median(point_z[ground].astype(np.float64) - ground_height[ground]))
+        on_ground = ground[valid_index]
+        residual = (point_z[valid_index][on_ground].astype(np.float64)
+                    - ground_height[valid_index][on_ground])
+        return ground_offsets(residual, point_segment[on_ground], point_bin[on_ground], m_count,
+                              n_bins, model.theta[2])
 
     return GroundSurface(grid.segment_r_min, grid.bin_width, grid.count.sum(axis=1) > 0, mean,
                          model.training.any(axis=1), std,
@@ -491,6 +496,6 @@ class GroundSegmenter:
                 np.where(grid.has_candidate, theta[1] * model.length_factor, np.nan), edges,
                 mean_full, std_full, threshold, model.gp, model.solution, d_star)
         surface = _ground_surface(model, grid, edges, mean_full, std_full if need_std else None,
-                                  xyz[:, 2], ground, height)
+                                  xyz[:, 2], ground, height, valid_index)
         return SegmentationResult(ground, valid, height, self._theta, timings, stats, extra,
                                   surface, xyz[:, 2])

@@ -17,17 +17,22 @@ z_std is the posterior standard deviation of the *latent* ground height, sqrt(k*
 without the sensor noise sigma_n: it says how well the ground height is known, not how far a
 single measured ground point may scatter around it (add sigma_n^2 to the variance for that).
 
-Calibration choice, the lowest-point offset: the GP is trained on the *lowest* point of every
-bin, which lies below the ground by the lower tail of the points' noise (about 1.5 cm on the
-synthetic scans, 2-3 cm on KITTI; see benchmarks/RESULTS.md, "Ground surface"). The labels keep
-that height (``SegmentationResult.ground_height``; their threshold was chosen with it), but the
-surface is meant to be *the* ground, so its z is the GP mean plus ``lowest_point_offset``: the
-median height above the labels' z_hat of the points labelled ground in the same frame (points
-on the ground scatter symmetrically about it; no truth or constant is involved).
+Calibration choice, the ground offset: the GP is trained on the *lowest* point of every bin,
+which lies below the ground by the lower tail of the points' scatter. That offset is not one
+number: it grows where rays hit the terrain steeply (ramps facing the sensor, hills) and where a
+segment spans a cross slope (its lowest points sit on the downhill side), about 0.5-3 cm on the
+synthetic scans and 2-3 cm on KITTI (benchmarks/RESULTS.md, "Ground surface"). The labels keep
+the GP mean (``SegmentationResult.ground_height``; their threshold was chosen with it), but the
+surface is meant to be *the* ground, so its z is the GP mean plus ``ground_offset``: at every bin
+edge, the mean height above the labels' z_hat of the points labelled ground in the two bins
+beside it (points on the ground scatter symmetrically about it), each height clipped to the
+frame's median +- 3 sigma_n so that a few obstacle points called ground cannot drag it; edges
+with no such point get the frame's median. No truth and no tuned constant is involved (3 sigma
+is the usual Gaussian outlier bound).
 
 Everything the labels do not need is computed on first access only: x, y, azimuth, and z_std when
 the threshold did not use the std (``ground_threshold_std_factor`` = 0, the default), and the
-lowest-point offset.
+ground offset.
 """
 
 from __future__ import annotations
@@ -54,12 +59,12 @@ class GroundSurface:
                  segment_has_points: np.ndarray, mean: np.ndarray,
                  segment_supported: np.ndarray, std: Optional[np.ndarray] = None,
                  compute_std: Optional[Callable[[], np.ndarray]] = None,
-                 compute_offset: Optional[Callable[[], float]] = None):
+                 compute_offset: Optional[Callable[[], np.ndarray]] = None):
         """``segment_r_min``, ``bin_width``, ``segment_has_points``, ``segment_supported``:
         (M,) grid geometry and flags; ``mean`` (M, N + 1) posterior mean at the bin edges.
         ``std`` is the posterior std there, or None and ``compute_std()`` returns it when first
-        read (it costs a GP variance evaluation). ``compute_offset()`` returns the lowest-point
-        offset (m) when first needed; None: no offset."""
+        read (it costs a GP variance evaluation). ``compute_offset()`` returns the ground offset
+        (m, scalar or (M, N + 1)) when first needed; None: no offset."""
         if std is None and compute_std is None:
             raise ValueError('GroundSurface needs std or compute_std')
         self._r_min = np.asarray(segment_r_min, dtype=np.float64)
@@ -112,20 +117,21 @@ class GroundSurface:
         return self.r * np.sin(self.azimuth)
 
     @cached_property
-    def lowest_point_offset(self) -> float:
-        """Height (m) of the ground above the GP mean trained on the lowest points (module
-        docstring): the median z - z_hat of the frame's ground points; 0 without them."""
+    def ground_offset(self) -> np.ndarray:
+        """Height (m) of the ground above the GP mean at each prediction point (module
+        docstring); 0 when no point was labelled ground."""
         if self._compute_offset is None:
-            return 0.0
-        offset = float(self._compute_offset())
+            return np.zeros(self._mean.shape)
+        offset = np.broadcast_to(np.asarray(self._compute_offset(), dtype=np.float64),
+                                 self._mean.shape)
         self._compute_offset = None
-        return offset if np.isfinite(offset) else 0.0
+        return np.where(np.isfinite(offset), offset, 0.0)
 
     @cached_property
     def z(self) -> np.ndarray:
         """Ground height at each prediction point (m, input frame): the GP posterior mean plus
-        the lowest-point offset."""
-        return self._mean + self.lowest_point_offset
+        the ground offset."""
+        return self._mean + self.ground_offset
 
     @property
     def z_std(self) -> np.ndarray:
@@ -175,3 +181,26 @@ class GroundSurface:
             low = values[seg, bins]
             out[inside] = low + frac * (values[seg, bins + 1] - low)
         return z_out.reshape(shape), std_out.reshape(shape)
+
+
+def ground_offsets(residual, segment, bin_index, num_segments: int, num_bins: int,
+                   noise_std: float) -> np.ndarray:
+    """(M, N + 1) ground offset at the bin edges (module docstring) from the points labelled
+    ground: ``residual`` z - z_hat (m), their ``segment`` and ``bin_index`` in the grid;
+    ``noise_std`` sigma_n (m) bounds each residual to the frame's median +- 3 sigma_n."""
+    residual = np.asarray(residual, dtype=np.float64)
+    m, n = int(num_segments), int(num_bins)
+    if residual.size == 0:
+        return np.zeros((m, n + 1))
+    centre = float(np.median(residual))
+    band = 3.0 * float(noise_std)
+    clipped = np.clip(residual, centre - band, centre + band)
+    key = np.asarray(segment, np.intp) * n + np.asarray(bin_index, np.intp)
+    sums = np.bincount(key, weights=clipped, minlength=m * n).reshape(m, n)
+    counts = np.bincount(key, minlength=m * n).reshape(m, n).astype(np.float64)
+    edge_sums, edge_counts = np.zeros((m, n + 1)), np.zeros((m, n + 1))
+    for values, edge in ((sums, edge_sums), (counts, edge_counts)):
+        edge[:, :-1] += values  # edge k is the inner edge of bin k ...
+        edge[:, 1:] += values  # ... and the outer edge of bin k - 1
+    with np.errstate(invalid='ignore', divide='ignore'):
+        return np.where(edge_counts > 0, edge_sums / edge_counts, centre)

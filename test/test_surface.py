@@ -132,3 +132,12 @@ def test_empty_frame_has_an_empty_surface():
     assert not s.supported.any() and s.points().shape == (0, 4)
     assert np.isnan(s.height_at(1.0, 1.0)[0])
     assert np.isnan(result.height_above_ground).all()
+
+
+def test_absurdly_far_points_leave_the_published_points_finite(ramp):
+    _, points, _ = ramp
+    far = np.r_[points[:, :3].astype(np.float64), np.full((20, 3), 1e30),
+                np.full((20, 3), -1e30)]
+    result = GroundSegmenter(SegmenterParams()).segment(far)
+    out = result.ground_surface.points()
+    assert len(out) > 1000 and np.isfinite(out).all()

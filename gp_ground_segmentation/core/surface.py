@@ -147,10 +147,13 @@ class GroundSurface:
         return np.broadcast_to(self._segment_supported[:, None], self._mean.shape)
 
     def points(self, supported_only: bool = True) -> np.ndarray:
-        """(K, 4) float32 x, y, z, z_std of the prediction points (the supported ones)."""
+        """(K, 4) float32 x, y, z, z_std of the prediction points (the supported ones); points
+        whose values are not finite in float32 (absurdly far returns) are left out."""
         keep = self.supported if supported_only else np.ones(self._mean.shape, bool)
         columns = (self.x, self.y, self.z, self.z_std)
-        return np.stack([c[keep] for c in columns], axis=1).astype(np.float32)
+        with np.errstate(over='ignore', invalid='ignore'):
+            out = np.stack([c[keep] for c in columns], axis=1).astype(np.float32)
+        return out[np.isfinite(out).all(axis=1)]
 
     # --- anywhere ----------------------------------------------------------------------------
     def height_at(self, x, y) -> tuple[np.ndarray, np.ndarray]:

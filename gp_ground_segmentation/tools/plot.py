@@ -250,24 +250,24 @@ def _draw_top(ax, xyz, result, labels, vegetation_is_ground, segment, m, truth_f
              (far * math.cos(a0 + width), far * math.sin(a0 + width))]
     ax.fill(*zip(*wedge), color='#f5c400', alpha=0.35, lw=0.8, ec='k', ls='--', zorder=0.5,
             label=f'segment {segment} (side view)')
+    _birds_eye_axes(ax, reach)
+    ax.legend(loc='upper right', fontsize=8, markerscale=8, framealpha=0.9)
+
+
+def _birds_eye_axes(ax, reach):
+    """x/y axes of a bird's-eye panel: +-reach metres, equal aspect, grid."""
     ax.set_xlim(-reach, reach)
     ax.set_ylim(-reach, reach)
     ax.set_aspect('equal')
     ax.set_xlabel('x (m)')
     ax.set_ylabel('y (m)')
     ax.grid(True, alpha=0.3)
-    ax.legend(loc='upper right', fontsize=8, markerscale=8, framealpha=0.9)
 
 
 def _draw_surface(ax, surface, fig, reach=40.0):
     """Bird's-eye height map of the ground surface: z filled, z_std as labelled contours."""
     ax.set_title('ground surface: height z (colour), z_std (contours, m)')
-    ax.set_xlim(-reach, reach)
-    ax.set_ylim(-reach, reach)
-    ax.set_aspect('equal')
-    ax.set_xlabel('x (m)')
-    ax.set_ylabel('y (m)')
-    ax.grid(True, alpha=0.3)
+    _birds_eye_axes(ax, reach)
     if surface is None:
         return
     keep = surface.supported & (np.abs(surface.x) <= 1.5 * reach) & (

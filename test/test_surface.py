@@ -141,3 +141,12 @@ def test_absurdly_far_points_leave_the_published_points_finite(ramp):
     result = GroundSegmenter(SegmenterParams()).segment(far)
     out = result.ground_surface.points()
     assert len(out) > 1000 and np.isfinite(out).all()
+
+
+def test_plot_side_view_draws_the_surface(ramp):
+    from gp_ground_segmentation.tools.plot import segment_view
+    _, points, result = ramp
+    view = segment_view(points[:, :3], result, 60, result.ground_surface.num_segments)
+    s = result.ground_surface
+    np.testing.assert_array_equal(view['gp_mean'], s.z[60])
+    np.testing.assert_array_equal(view['gp_std'], s.z_std[60])

@@ -19,7 +19,8 @@ Topics (relative names; remap e.g. ``-r points:=/velodyne_points``):
   ground     (pub) sensor_msgs/PointCloud2, RELIABLE, VOLATILE, keep last 1.
   obstacles  (pub) same QoS as ground.
   ground_surface (pub) same QoS: the GP ground surface, PointCloud2 x, y, z, z_std (FLOAT32, m;
-             z_std = posterior std of the ground height without sensor noise) at the bin edges
+             z = GP mean + ground offset, z_std = posterior std of the latent ground height
+             without sensor noise; core/surface.py) at the bin edges
              of every segment with ground candidates, input header; only while
              ``publish_ground_surface`` is true.
   /diagnostics (pub) diagnostic_msgs/DiagnosticArray, every diagnostics_period_s.

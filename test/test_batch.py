@@ -111,14 +111,18 @@ def test_cluster_batch_equals_replay_and_isolates_the_corrupt_input(inputs, tmp_
     assert float(table[0]['sigma_f_min']) <= float(table[0]['sigma_f_max'])
 
 
-def test_rerun_skips_finished_inputs_and_force_redoes_them(inputs, tmp_path, cluster):
+def test_rerun_skips_finished_inputs_and_force_redoes_them(inputs, tmp_path, cluster,
+                                                           monkeypatch):
     from gp_ground_segmentation.tools.batch import run_batch
-    good = [str(inputs / 'bag_a'), str(inputs / 'scans')]
+    # relative inputs, and a working directory the (already running) workers do not share
+    monkeypatch.chdir(inputs)
+    good = ['bag_a', 'scans']
     out = tmp_path / 'out'
-    first = run_batch(good + [str(inputs / 'broken.mcap')], out, cluster)
+    first = run_batch(good + ['broken.mcap'], out, cluster)
+    assert first.rows[0]['input'] == 'bag_a'
     assert [r['status'] for r in first.rows] == ['ok', 'ok', 'failed']
     stamp = (out / 'bag_a' / 'metadata.yaml').stat().st_mtime_ns
-    again = run_batch(good + [str(inputs / 'broken.mcap')], out, cluster)
+    again = run_batch(good + ['broken.mcap'], out, cluster)
     assert [r['status'] for r in again.rows] == ['skipped', 'skipped', 'failed']
     assert again.rows[0]['frames'] == 3  # the earlier run's numbers are kept for skipped rows
     assert (out / 'bag_a' / 'metadata.yaml').stat().st_mtime_ns == stamp
@@ -215,3 +219,23 @@ def test_paths_workers_cannot_see_are_refused_up_front(inputs, tmp_path):
     with pytest.raises(CliError, match='not the same storage on worker'):
         other_disk.check_shared([str(inputs / 'scans')], tmp_path / 'out')
     assert list((tmp_path / 'out').iterdir()) == []  # the probe file is removed
+
+
+def _malloc_env():
+    import os
+    return os.environ.get('MALLOC_TRIM_THRESHOLD_')
+
+
+def test_workers_keep_glibc_malloc_defaults(cluster):
+    """Dask's MALLOC_TRIM_THRESHOLD_ doubles the CPU per frame (engine.py); LocalCluster workers
+    must not get it, and the shipped config for `dask worker` removes the same key."""
+    import yaml
+
+    from gp_ground_segmentation.tools.engine import WORKER_MALLOC_KEY
+    assert set(cluster.run_on_workers(_malloc_env).values()) == {None}
+    doc = yaml.safe_load((REPO / 'config' / 'dask' / 'gp-ground-seg-worker.yaml').read_text())
+    node = doc
+    for part in WORKER_MALLOC_KEY.split('.'):
+        assert list(node) == [part]
+        node = node[part]
+    assert node is None

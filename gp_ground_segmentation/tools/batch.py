@@ -77,17 +77,18 @@ class _TaskProgress:
         pass
 
 
-def replay_one(input_path: str, out_bag: str, *, topic: Optional[str], params_file: Optional[str],
-               storage: str, force: bool, sink: Callable) -> dict:
-    """One task: replay ``input_path`` into ``out_bag``; a summary row (never raises for bad
-    input: the error is the row's, in replay's one-line wording)."""
+def replay_one(input_path: str, out_bag: str, *, label: str, topic: Optional[str],
+               params_file: Optional[str], storage: str, force: bool, sink: Callable) -> dict:
+    """One task: replay ``input_path`` into ``out_bag``; a summary row for input ``label`` (the
+    path as the user gave it). Never raises for bad input: the error is the row's, in replay's
+    one-line wording."""
     from .bag import replay
-    row = {'input': input_path, 'output': out_bag, 'status': 'ok', 'error': ''}
+    row = {'input': label, 'output': out_bag, 'status': 'ok', 'error': ''}
     t0 = time.perf_counter()
     try:
         summary = replay([input_path], out_bag, topic=topic, params_file=params_file,
                          storage=storage, force=force,
-                         progress=_TaskProgress(input_path, sink))
+                         progress=_TaskProgress(label, sink))
     except _expected_errors() as err:
         row.update(status='failed', error=_one_line(err), wall_s=time.perf_counter() - t0)
         return row
@@ -182,7 +183,9 @@ def run_batch(inputs: Sequence[str], out_dir, engine, *, topic: Optional[str] = 
     summary of what finished and is re-raised.
     """
     from .bag import Progress, load_params
-    out_dir = Path(out_dir)
+    # tasks get absolute paths: a remote worker's working directory is not ours
+    out_dir = Path(out_dir).absolute()
+    params_file = None if params_file is None else os.path.abspath(params_file)
     if not inputs:
         raise CliError('give at least one input')
     names = [output_name(p) for p in inputs]
@@ -212,7 +215,7 @@ def run_batch(inputs: Sequence[str], out_dir, engine, *, topic: Optional[str] = 
             report(row)
         else:
             todo.append((path, str(out)))
-    counts = [engine.submit(count_frames, path, topic) for path, _ in todo]
+    counts = [engine.submit(count_frames, os.path.abspath(path), topic) for path, _ in todo]
     totals = {path: f.result() for (path, _), f in zip(todo, counts)}
     progress = Progress(sum(totals.values()), stream=progress_stream)
     done_frames = {path: 0 for path, _ in todo}
@@ -221,7 +224,9 @@ def run_batch(inputs: Sequence[str], out_dir, engine, *, topic: Optional[str] = 
     def on_progress(msg):
         with lock:
             key = msg['input']
-            done_frames[key] = max(done_frames.get(key, 0), int(msg['done']))
+            if key not in done_frames:  # a late event of an earlier batch on this engine
+                return
+            done_frames[key] = max(done_frames[key], int(msg['done']))
             progress.update(sum(done_frames.values()))
 
     engine.subscribe(PROGRESS_TOPIC, on_progress)
@@ -231,8 +236,9 @@ def run_batch(inputs: Sequence[str], out_dir, engine, *, topic: Optional[str] = 
     interrupted = False
     try:
         for path, out in todo:  # in-process, each task runs right here
-            fut = engine.submit(replay_one, path, out, topic=topic, params_file=params_file,
-                                storage=storage, force=force, sink=sink)
+            fut = engine.submit(replay_one, os.path.abspath(path), out, label=path,
+                                topic=topic, params_file=params_file, storage=storage,
+                                force=force, sink=sink)
             futures[fut] = path
             pending.append(fut)
         while pending:

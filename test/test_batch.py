@@ -239,3 +239,23 @@ def test_workers_keep_glibc_malloc_defaults(cluster):
         assert list(node) == [part]
         node = node[part]
     assert node is None
+
+
+def test_progress_counts_frames_across_the_batch(inputs, tmp_path):
+    import io
+
+    from gp_ground_segmentation.tools.batch import run_batch
+    from gp_ground_segmentation.tools.engine import InProcessEngine
+
+    class Tty(io.StringIO):
+        def isatty(self):
+            return True
+
+    stream = Tty()
+    rows = []
+    result = run_batch([str(inputs / 'bag_a'), str(inputs / 'broken.mcap'),
+                        str(inputs / 'scans')], tmp_path / 'out', InProcessEngine(),
+                       report=rows.append, progress_stream=stream)
+    assert result.failed == 1 and [r['status'] for r in rows] == ['ok', 'failed', 'ok']
+    bars = stream.getvalue().split('\r')
+    assert any(' 3/5 frames' in b for b in bars) and ' 5/5 frames' in bars[-1]

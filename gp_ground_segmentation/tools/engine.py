@@ -213,9 +213,11 @@ def open_engine(jobs: Optional[int] = None, scheduler: Optional[str] = None):
     # MALLOC_TRIM_THRESHOLD_=65536 for workers also pins glibc's mmap threshold, so every
     # frame-sized array is mmapped and page-faulted afresh: measured 2x the CPU per frame of
     # replay (0.8 -> 1.7 s for 30 KITTI frames). Leave glibc's adaptive default.
+    # The scheduler's HTTP server (dashboard, metrics) on a free port: two clusters on one
+    # machine (two users, parallel CI jobs) must not fight over the fixed default 8787.
     with dask.config.set({WORKER_MALLOC_KEY: None}):
         cluster = distributed.LocalCluster(n_workers=jobs, threads_per_worker=1, processes=True,
-                                           dashboard_address=None, silence_logs=logging.ERROR)
+                                           dashboard_address=':0', silence_logs=logging.ERROR)
     client = distributed.Client(cluster)
     return DaskEngine(client, cluster, f'Dask LocalCluster, {jobs} worker process(es)',
                       time.perf_counter() - t0)

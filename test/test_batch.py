@@ -28,8 +28,8 @@ pytestmark = pytest.mark.skipif(not BAG.is_dir(), reason=f'real data not found: 
 
 
 def cloud_bytes(bag):
-    """{topic: [(bag time, every PointCloud2 field, point data bytes)]} of the ground and
-    obstacle topics of an output bag.
+    """{topic: [(bag time, every PointCloud2 field, point data bytes)]} of the cloud topics
+    (ground, obstacles, ground surface) of an output bag.
 
     Not the raw CDR: rclpy's serializer leaves the alignment padding after the frame_id string
     uninitialised, so two serialisations of one message can differ in those bytes.
@@ -86,7 +86,7 @@ def test_cluster_batch_equals_replay_and_isolates_the_corrupt_input(inputs, tmp_
         ref = tmp_path / f'ref_{src.name}'
         assert main(['replay', str(src), str(ref)]) == 0
         got, want = cloud_bytes(out / src.name), cloud_bytes(ref)
-        assert set(got) == {f'{TOPIC}/ground', f'{TOPIC}/obstacles'}
+        assert set(got) == {f'{TOPIC}/ground', f'{TOPIC}/obstacles', f'{TOPIC}/ground_surface'}
         assert got == want
     assert main(['replay', str(bad), str(tmp_path / 'ref_bad')]) == 2
     replay_error = capsys.readouterr().err.strip().split('error: ', 1)[1]

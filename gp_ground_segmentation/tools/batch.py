@@ -2,12 +2,12 @@
 """``gp-ground-seg batch``: replay many inputs, one task each, in-process or on Dask.
 
 Each input (a bag, or a directory of bags' worth of .bin/.pcd files) is one task that runs
-:func:`bag.replay` unchanged, so its output bag ``DIR/<input name>/`` is byte for byte what ``gp-
-ground-seg replay INPUT DIR/<input name>`` writes (ground, obstacle and surface clouds; diagnostics
-carry timings). ``replay`` writes into a hidden sibling and renames it into place, so an output
-directory is either complete or absent: re-running skips inputs whose output exists (``force``
-redoes them), and an interrupted batch leaves nothing half-written (hidden leftovers of killed
-workers are removed on the way out).
+:func:`bag.replay` unchanged, so its output bag ``DIR/<input name>/`` is byte for byte what
+``gp-ground-seg replay INPUT DIR/<input name>`` writes (ground, obstacle and surface clouds;
+diagnostics carry timings). ``replay`` writes into a hidden sibling and renames it into place, so
+an output directory is either complete or absent: re-running skips inputs whose output exists
+(``force`` redoes them), and an interrupted batch leaves nothing half-written (hidden leftovers of
+killed workers are removed on the way out).
 
 A failing input (corrupt bag, wrong type, missing topic) is a row with status ``failed`` and
 replay's one-line message; the other tasks finish. ``DIR/summary.json`` and ``DIR/summary.csv``

@@ -14,6 +14,9 @@ Pipeline of one frame (stage names are the keys of ``SegmentationResult.timings_
              segment: a dense N x n kernel against every raw point would cost 100x more).
 ``label``    ground height of each point by linear interpolation along r between the bin
              edges of its segment; ground when z - z_hat <= threshold.
+``structure`` (``use_vertical_structure_test``) ground points with a column of returns right
+             above them are the feet of walls, fences, cars, trunks and bushes: obstacle
+             (``structure.vertical_structure_mask``).
 
 Choices where the paper is vague, each a parameter (see params.py):
 
@@ -52,6 +55,7 @@ from .gp import FrameGP, length_scale_factors
 from .grid import RadialGrid, build_grid, relative_density
 from .lines import LineSegments, extract_lines
 from .params import SegmenterParams
+from .structure import vertical_structure_mask
 
 _OUTLIER_NOISE_VAR = 1e4  # m^2: a rejected candidate's noise variance (std 100 m)
 _blas = None  # threadpoolctl controller, made on first use (after scipy has loaded its BLAS)
@@ -352,7 +356,7 @@ class GroundSegmenter:
         stats = {'points': 0, 'valid_points': 0, 'candidates': 0, 'training_candidates': 0,
                  'outlier_candidates': 0, 'steep_line_candidates': 0, 'lines': 0,
                  'cholesky_fallbacks': 0, 'optimizer_iterations': 0, 'optimizer_failures': 0,
-                 'log_marginal_likelihood': float('nan')}
+                 'log_marginal_likelihood': float('nan'), 'structure_feet': 0}
         pts = np.asarray(points)
         if pts.ndim != 2 or pts.shape[1] < 3:
             raise ValueError(f'points must be an (N, >=3) array, got shape {pts.shape}')
@@ -406,10 +410,21 @@ class GroundSegmenter:
             threshold = np.minimum(p.ground_threshold_m + p.ground_threshold_std_factor * std,
                                    p.max_threshold_m)
         else:
-            threshold = min(p.ground_threshold_m, p.max_threshold_m)
-        ground[valid_index] = z - z_hat <= threshold
-        height[valid_index] = z_hat
+            threshold = p.ground_threshold_m  # validate(): never above max_threshold_m
+        ground_v = z - z_hat <= threshold
         timings['label'] = (time.perf_counter() - t) * 1e3
+
+        if p.use_vertical_structure_test:
+            t = time.perf_counter()
+            feet = vertical_structure_mask(
+                x, y, z, z_hat, ground_v, cell_m=p.structure_cell_m,
+                cell_deg=p.structure_cell_deg, rise_m=p.structure_rise_m,
+                max_height_m=p.structure_max_height_m)
+            ground_v &= ~feet
+            stats['structure_feet'] = int(np.count_nonzero(feet))
+            timings['structure'] = (time.perf_counter() - t) * 1e3
+        ground[valid_index] = ground_v
+        height[valid_index] = z_hat
         timings['total'] = (time.perf_counter() - t_start) * 1e3
 
         extra = None

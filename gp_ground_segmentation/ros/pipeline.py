@@ -25,7 +25,8 @@ from ..core.segmenter import SegmentationResult
 __all__ = ['FrameOutput', 'process_cloud', 'input_warnings', 'STAGES', 'frame_timings']
 
 # Stages reported in diagnostics, in pipeline order (segmenter stages from result.timings_ms).
-STAGES = ('decode', 'grid', 'lines', 'gp_fit', 'predict', 'label', 'encode', 'total')
+STAGES = ('decode', 'grid', 'lines', 'gp_fit', 'predict', 'label', 'structure', 'encode',
+          'total')
 
 
 @dataclass

@@ -103,6 +103,8 @@ class SegmentationDetails:
     gp: Optional[FrameGP] = None  # the frame's GP batch (rows = gp.segments), for analysis
     gp_solution: Optional[object] = None  # its final factorisation (gp.GPSolution)
     length_factor_at_edges: Optional[np.ndarray] = None  # (S, N + 1) d used at the bin edges
+    structure_feet: Optional[np.ndarray] = None  # (P,) bool: passed the height test, obstacle
+    # as the foot of a vertical structure (None when use_vertical_structure_test is off)
 
 
 @dataclass
@@ -414,6 +416,7 @@ class GroundSegmenter:
         ground_v = z - z_hat <= threshold
         timings['label'] = (time.perf_counter() - t) * 1e3
 
+        feet = None
         if p.use_vertical_structure_test:
             t = time.perf_counter()
             feet = vertical_structure_mask(
@@ -433,5 +436,5 @@ class GroundSegmenter:
             extra = SegmentationDetails(
                 np.flatnonzero(valid), grid, lines, model.training, model.outliers,
                 np.where(grid.has_candidate, theta[1] * model.length_factor, np.nan), edges,
-                mean_full, std_full, threshold, model.gp, model.solution, d_star)
+                mean_full, std_full, threshold, model.gp, model.solution, d_star, feet)
         return SegmentationResult(ground, valid, height, self._theta, timings, stats, extra)

@@ -32,8 +32,15 @@ import numpy as np
 __all__ = ['vertical_structure_mask']
 
 
-def _polar_cells(x, y, cell_m: float, cell_rad: float):
-    """(azimuth cell, radial cell) of every point, and the number of azimuth cells."""
+# Cells grow with range only up to this size (m): a wider neighbourhood is no longer "right
+# above" a point. Points beyond the range where cells would be wider (191 m at 0.15 degrees)
+# keep their height-test label; it also bounds the cell table however far points lie.
+_MAX_CELL_M = 0.5
+
+
+def _polar_cells(x, y, r, cell_m: float, cell_rad: float):
+    """(azimuth cell, radial cell) of points at x, y and range r, and the number of azimuth cells.
+    """
     n_az = max(1, int(np.ceil(2.0 * np.pi / cell_rad)))
     dtype = x.dtype
     az = ((np.arctan2(y, x) + dtype.type(np.pi)) * dtype.type(n_az / (2.0 * np.pi))
@@ -42,12 +49,18 @@ def _polar_cells(x, y, cell_m: float, cell_rad: float):
     # cells of cell_m out to r_square, where an azimuth cell is cell_m wide, then cells growing
     # with r: index r_square / cell_m + ln(r / r_square) / cell_rad, continuous at r_square
     r_square = cell_m / cell_rad
-    r = np.hypot(x, y)
     ring = r * dtype.type(1.0 / cell_m)
     far = np.flatnonzero(r > r_square)
     ring[far] = dtype.type(r_square / cell_m) + np.log(r[far] * dtype.type(1.0 / r_square)) \
         * dtype.type(1.0 / cell_rad)
     return az, ring.astype(np.int32), n_az
+
+
+def _within(index, x, y, limit):
+    """The entries of ``index`` whose points lie within ``limit`` of the sensor, and their r."""
+    r = np.hypot(x[index], y[index])
+    near = r <= limit
+    return index[near], r[near]
 
 
 def vertical_structure_mask(x: np.ndarray, y: np.ndarray, z: np.ndarray,
@@ -63,15 +76,15 @@ def vertical_structure_mask(x: np.ndarray, y: np.ndarray, z: np.ndarray,
     """
     out = np.zeros(candidate.shape, dtype=bool)
     height = z - ground_z
-    column = np.flatnonzero((height > rise_m) & (height <= max_height_m))
-    cand = np.flatnonzero(candidate)
+    cell_rad = np.radians(cell_deg)
+    limit = max(_MAX_CELL_M, cell_m) / cell_rad
+    column, r_col = _within(np.flatnonzero((height > rise_m) & (height <= max_height_m)), x, y,
+                            limit)
+    cand, r_cand = _within(np.flatnonzero(candidate), x, y, limit)
     if cand.size == 0 or column.size == 0:
         return out
-    cell_rad = np.radians(cell_deg)
-    az_col, ring_col, n_az = _polar_cells(x[column], y[column], cell_m, cell_rad)
-    az_cand, ring_cand, _ = _polar_cells(x[cand], y[cand], cell_m, cell_rad)
-    # the table has one spare cell on every side: row 0 repeats the last azimuth row and row
-    # n_az + 1 the first (azimuth wraps around), so a neighbour is a constant flat offset
+    az_col, ring_col, n_az = _polar_cells(x[column], y[column], r_col, cell_m, cell_rad)
+    az_cand, ring_cand, _ = _polar_cells(x[cand], y[cand], r_cand, cell_m, cell_rad)
     width = int(max(ring_col.max(), ring_cand.max())) + 3
     occupied = np.zeros((n_az + 2, width), dtype=bool)
     occupied[az_col + 1, ring_col + 1] = True

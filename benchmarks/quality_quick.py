@@ -20,15 +20,17 @@ and by Patchwork++ (``pypatchworkpp`` defaults, a fresh instance per frame, ``se
 1.73 m on KITTI, 1.27 m on RELLIS: the median height of the labelled ground 3-8 m from that
 sensor is -1.27 m). Scores: ``gp_ground_segmentation.tools.evaluation``, pooled TP/FP/FN.
 
-``--cv name=v1,v2,...`` picks a parameter value by leave-one-scene-out: for each held-out real
-scene the value with the highest mean F1 over the *other* units (real scenes and synthetic
-groups, each unit's pooled F1 weighted equally) is chosen, and its held-out score reported.
+``--cv name=v1,v2,... [name2=...]`` picks parameter values (a joint grid) by leave-one-scene-out:
+for each held-out real scene the values with the highest mean F1 over the *other* units (real
+scenes and synthetic groups, each unit's pooled F1 weighted equally) are chosen, and their
+held-out score reported.
 """
 
 from __future__ import annotations
 
 import argparse
 import ast
+import itertools
 import sys
 from pathlib import Path
 
@@ -152,29 +154,35 @@ def stage_ms(ours: dict) -> str:
     return ', '.join(f'{k} {common.fmt(common.median(v), 1)}' for k, v in stages.items())
 
 
-def cross_validate(units, name: str, values, base_params: SegmenterParams) -> str:
-    """Leave-one-real-scene-out choice of ``name`` among ``values``; markdown table."""
+def cross_validate(units, grid: dict, base_params: SegmenterParams) -> str:
+    """Leave-one-real-scene-out choice of the parameters in ``grid`` (name -> values, searched
+    jointly); markdown tables."""
+    names = list(grid)
+    combos = list(itertools.product(*grid.values()))
     f1 = {}
-    for v in values:
-        per_frame = run_gp(base_params.replace(**{name: v}), units)
-        f1[v] = unit_f1(units, per_frame)
-        print(f'[cv] {name}={v}: ' + ', '.join(f'{u} {s:.4f}' for u, s in f1[v].items()),
+    for combo in combos:
+        per_frame = run_gp(base_params.replace(**dict(zip(names, combo))), units)
+        f1[combo] = unit_f1(units, per_frame)
+        print(f'[cv] {combo}: ' + ', '.join(f'{u} {s:.4f}' for u, s in f1[combo].items()),
               file=sys.stderr)
+    all_units = [u for u, _, _, _ in units]
     rows = []
     for held, is_real, _, _ in units:
         if not is_real:
             continue
-        others = [u for u, _, _, _ in units if u != held]
-        best = max(values, key=lambda v: np.mean([f1[v][u] for u in others]))
-        rows.append([held, repr(best), common.fmt(np.mean([f1[best][u] for u in others]), 4),
+        others = [u for u in all_units if u != held]
+        best = max(combos, key=lambda c: np.mean([f1[c][u] for u in others]))
+        rows.append([held, ', '.join(map(repr, best)),
+                     common.fmt(np.mean([f1[best][u] for u in others]), 4),
                      common.fmt(f1[best][held], 4),
-                     common.fmt(max(f1[v][held] for v in values), 4)])
+                     common.fmt(max(f1[c][held] for c in combos), 4)])
     table = common.markdown_table(
-        ['held-out scene', f'{name} chosen on the others', 'mean F1 on the others',
+        ['held-out scene', f'{", ".join(names)} chosen on the others', 'mean F1 on the others',
          'held-out F1', 'best held-out F1 of any value'], rows)
     per_value = common.markdown_table(
-        [name] + [u for u, _, _, _ in units],
-        [[repr(v)] + [common.fmt(f1[v][u], 4) for u, _, _, _ in units] for v in values])
+        [', '.join(names)] + all_units,
+        [[', '.join(map(repr, c))] + [common.fmt(f1[c][u], 4) for u in all_units]
+         for c in combos])
     return table + '\n\nF1 per unit and value:\n\n' + per_value
 
 
@@ -190,7 +198,8 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     ap.add_argument('--set', nargs='*', default=[], help='name=value over the defaults (ours)')
     ap.add_argument('--baseline', nargs='*', default=[], help='name=value of the baseline set')
-    ap.add_argument('--cv', nargs='*', default=[], help='name=v1,v2,...: leave-one-scene-out')
+    ap.add_argument('--cv', nargs='*', default=[],
+                    help='name=v1,v2,... (several: a joint grid): leave-one-scene-out')
     ap.add_argument('--no-write', action='store_true', help='print only, keep RESULTS.md')
     args = ap.parse_args(argv)
     units = load_units()
@@ -205,11 +214,13 @@ def main(argv=None):
     text = [common.machine_markdown(common.command_line()),
             report(units, ours, base, pwpp, ours_label, base_label), '',
             f'Ours, median ms per stage on the real frames (cold): {stage_ms(ours)}.']
-    for item in args.cv:
-        name, _, values = item.partition('=')
-        vals = [ast.literal_eval(v) for v in values.split(',')]
-        text += ['', f'Leave-one-scene-out choice of `{name}`:', '',
-                 cross_validate(units, name, vals, ours_params)]
+    if args.cv:
+        grid = {}
+        for item in args.cv:
+            name, _, values = item.partition('=')
+            grid[name] = [ast.literal_eval(v) for v in values.split(',')]
+        text += ['', f'Leave-one-scene-out choice of {", ".join(f"`{n}`" for n in grid)} '
+                 '(searched jointly):', '', cross_validate(units, grid, ours_params)]
     out = '\n'.join(text) + '\n'
     print(out)
     if not args.no_write:

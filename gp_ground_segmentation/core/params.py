@@ -128,9 +128,12 @@ class SegmenterParams:
     structure_cell_deg: float = _param(
         0.15, 'azimuth size (degrees) of the cells of the structure test', 0.01, 10.0)
     structure_rise_m: float = _param(
-        0.2, 'a point this far (m) above the predicted ground, or more, is part of a column: it '
+        0.2, 'a point more than this (m) above the predicted ground is part of a column: it '
         'makes the ground points of its neighbourhood structure feet; keep it above curb '
         'height', 0.0, 10.0)
+    structure_step_m: float = _param(
+        0.05, 'a column point must also stand more than this (m) above the ground point it '
+        'condemns (neighbours on a ramp differ by less over a few cm)', 0.0, 10.0)
     structure_max_height_m: float = _param(
         0.7, 'points higher than this (m) above the predicted ground are not columns (tree '
         'crowns, car bodies and signs overhanging visible ground); above structure_rise_m',

@@ -1,5 +1,5 @@
 # SPDX-License-Identifier: Apache-2.0
-"""The structure stage: feet of walls are obstacle; curbs, ramps, far ground, overhangs stay ground.
+"""The structure stage: wall feet become obstacle; curbs, ramps, far ground, overhangs stay ground.
 
 Hand-built point sets in the geometry of a spinning LiDAR at the origin: ground rings a few
 decimetres to metres apart radially, points every 0.1-0.2 degrees along a ring, a wall face

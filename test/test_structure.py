@@ -101,7 +101,7 @@ def test_azimuth_wraps_around_behind_the_sensor():
 
 
 def test_points_beyond_the_largest_cell_keep_their_label():
-    # cells grow with range up to 0.5 m (191 m at 0.15 degrees); a scene 1e6 m away would
+    # cells grow with range up to 0.5 m (115 m at 0.25 degrees); a scene 1e6 m away would
     # otherwise share kilometre-wide cells with every obstacle
     ground = ground_rings(np.arange(3.0, 9.6, 0.3)) + [1e6, 0.0, 0.0]
     face = wall(1e6 + 10.0, (-3.0, 3.0), np.arange(0.25, 2.5, 0.15))

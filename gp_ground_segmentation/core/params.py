@@ -122,11 +122,11 @@ class SegmenterParams:
         'and structure_max_height_m above the predicted ground: the lowest returns of walls, '
         'fences, cars, trunks and bushes')
     structure_cell_m: float = _param(
-        0.05, 'radial size (m) of the cells of the structure test near the sensor; beyond the '
+        0.03, 'radial size (m) of the cells of the structure test near the sensor; beyond the '
         'range where an azimuth cell is this wide, cells grow in proportion to the range',
         0.005, 1.0)
     structure_cell_deg: float = _param(
-        0.15, 'azimuth size (degrees) of the cells of the structure test', 0.01, 10.0)
+        0.25, 'azimuth size (degrees) of the cells of the structure test', 0.01, 10.0)
     structure_rise_m: float = _param(
         0.2, 'a point more than this (m) above the predicted ground is part of a column: it '
         'makes the ground points of its neighbourhood structure feet; keep it above curb '

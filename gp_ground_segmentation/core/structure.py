@@ -36,7 +36,7 @@ __all__ = ['vertical_structure_mask']
 
 
 # Cells grow with range only up to this size (m): a wider neighbourhood is no longer "right
-# above" a point. Points beyond the range where cells would be wider (191 m at 0.15 degrees)
+# above" a point. Points beyond the range where cells would be wider (115 m at 0.25 degrees)
 # keep their height-test label; it also bounds the cell table however far points lie.
 _MAX_CELL_M = 0.5
 

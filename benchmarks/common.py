@@ -47,8 +47,7 @@ if str(REPO) not in sys.path:
 from gp_ground_segmentation.tools.evaluation import (  # noqa: E402
     ground_truth_from_labels, truth_metrics)
 
-# ../shared/data beside the repository; GP_GROUND_SHARED_DATA points elsewhere (a git worktree)
-DATA_DIR = Path(os.environ.get('GP_GROUND_SHARED_DATA', REPO.parent / 'shared' / 'data'))
+DATA_DIR = REPO.parent / 'shared' / 'data'
 LABELED_BIN = 'kitti_sequnknown_spvnas_000000.bin'
 LABELED_LABEL = 'kitti_sequnknown_spvnas_000000.label'
 UNLABELED_BIN = 'kitti_unlabeled_patchworkpp_000000.bin'

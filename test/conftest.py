@@ -18,8 +18,7 @@ os.environ['ROS_DOMAIN_ID'] = str(1 + os.getpid() % 100)
 os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
 
 REPO = Path(__file__).resolve().parents[1]
-# ../shared/data beside the repository; GP_GROUND_SHARED_DATA points elsewhere (a git worktree)
-DATA = Path(os.environ.get('GP_GROUND_SHARED_DATA', REPO.parent / 'shared' / 'data'))
+DATA = REPO.parent / 'shared' / 'data'
 BAG = DATA / 'kitti00_velodyne_points'
 
 

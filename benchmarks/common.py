@@ -47,7 +47,16 @@ if str(REPO) not in sys.path:
 from gp_ground_segmentation.tools.evaluation import (  # noqa: E402
     ground_truth_from_labels, truth_metrics)
 
-DATA_DIR = REPO.parent / 'shared' / 'data'
+
+def _find_data_dir() -> Path:
+    """../shared/data next to the repository, or next to a parent (a git worktree under wt/)."""
+    for parent in REPO.parents:
+        if (parent / 'shared' / 'data').is_dir():
+            return parent / 'shared' / 'data'
+    return REPO.parent / 'shared' / 'data'
+
+
+DATA_DIR = _find_data_dir()
 LABELED_BIN = 'kitti_sequnknown_spvnas_000000.bin'
 LABELED_LABEL = 'kitti_sequnknown_spvnas_000000.label'
 UNLABELED_BIN = 'kitti_unlabeled_patchworkpp_000000.bin'
@@ -74,6 +83,7 @@ class Frame:
     has_intensity: bool
     truth: Optional[np.ndarray] = None  # (N,) bool true ground, or None
     evaluated: Optional[np.ndarray] = None  # (N,) bool points that are scored, or None = all
+    mount_height_m: Optional[float] = None  # sensor above the ground (m), for peers that need it
 
     @property
     def labeled(self) -> bool:
@@ -129,6 +139,109 @@ def load_labeled_kitti(data_dir: Path = DATA_DIR) -> Optional[Dataset]:
     frame = Frame('semantickitti_000000', pts, True, truth, evaluated)
     return Dataset('kitti_labeled', [frame], 'SemanticKITTI scan, labels (ground '
                    '40/44/48/49/60/72; 0/1 ignored; 70 non-ground)', 'real')
+
+
+def _read_labeled_pair(bin_path: Path, label_path: Path):
+    """(points (N, 4) float32, semantic classes (N,) uint32) of a .bin/.label pair."""
+    from gp_ground_segmentation.tools.evaluation import semantic_classes
+    from gp_ground_segmentation.tools.io import read_kitti_bin, read_semantickitti_labels
+    pts = np.ascontiguousarray(read_kitti_bin(bin_path), dtype=np.float32)
+    labels = read_semantickitti_labels(label_path, expected_points=len(pts))
+    return pts, semantic_classes(labels)
+
+
+def load_kitti00_labeled(data_dir: Path = DATA_DIR) -> Optional[Dataset]:
+    """KITTI 00 frames 0-2 with SemanticKITTI labels (about one scene), in stream order."""
+    frames = []
+    for i in range(3):
+        stem = data_dir / 'labeled' / f'semantickitti_seq00_{i:06d}'
+        bin_path, label_path = stem.with_suffix('.bin'), stem.with_suffix('.label')
+        if _missing(bin_path) or _missing(label_path):
+            continue
+        pts, classes = _read_labeled_pair(bin_path, label_path)
+        truth, evaluated = ground_truth_from_labels(classes)
+        frames.append(Frame(f'kitti00_{i:06d}', pts, True, truth, evaluated,
+                            KITTI_SENSOR_HEIGHT_M))
+    if not frames:
+        return None
+    return Dataset('kitti00_labeled', frames, 'KITTI 00 frames 0-2, SemanticKITTI labels '
+                   '(ground 40/44/48/49/60/72; 0/1 ignored; 70 non-ground)', 'real')
+
+
+# RELLIS-3D ontology (not SemanticKITTI's): ground = 1 dirt, 3 grass, 10 asphalt, 23 concrete,
+# 31 puddle, 33 mud; 0 void is left out (it also holds every (0, 0, 0) no-return point).
+RELLIS_GROUND_CLASSES = (1, 3, 10, 23, 31, 33)
+RELLIS_IGNORED_CLASSES = (0,)
+
+
+def rellis_mount_height(points: np.ndarray, truth: np.ndarray) -> float:
+    """Sensor height over the ground (m): minus the median z of true ground at 3-10 m range.
+
+    What a user measures once for a mount; only the peers that need a height are given it.
+    """
+    r = np.hypot(points[:, 0], points[:, 1])
+    near = truth & (r > 3.0) & (r < 10.0)
+    return float(-np.median(points[near, 2]))
+
+
+def load_rellis(data_dir: Path = DATA_DIR) -> Optional[Dataset]:
+    """The RELLIS-3D Ouster OS1-64 scan (organised, (0, 0, 0) no-returns) with its labels."""
+    stem = data_dir / 'labeled' / 'rellis3d_examplebundle_000001'
+    bin_path, label_path = stem.with_suffix('.bin'), stem.with_suffix('.label')
+    if _missing(bin_path) or _missing(label_path):
+        return None
+    pts, classes = _read_labeled_pair(bin_path, label_path)
+    truth = np.isin(classes, RELLIS_GROUND_CLASSES)
+    evaluated = ~np.isin(classes, RELLIS_IGNORED_CLASSES)
+    # The intensity is normalised to ~0..0.012, not KITTI's 0..1 remission: treated as absent so
+    # intensity-based steps tuned for remission (Patchwork++'s RNR) are not misled.
+    frame = Frame('rellis3d_000001', pts, False, truth, evaluated,
+                  rellis_mount_height(pts, truth))
+    return Dataset('rellis3d', [frame], 'RELLIS-3D off-road Ouster OS1-64 scan, organised '
+                   '(ground dirt/grass/asphalt/concrete/puddle/mud; void ignored)', 'real')
+
+
+def load_family(family: str, seeds) -> Optional[Dataset]:
+    """Members ``seeds`` of a randomised synthetic family (``scenes.synthetic.family_scan``)."""
+    try:
+        from scenes import synthetic
+    except ImportError as exc:
+        print(f'[data] skipped synthetic families: {exc}', file=sys.stderr)
+        return None
+    frames, group = [], ''
+    for seed in seeds:
+        member = synthetic.family_scene(family, seed)
+        scan = synthetic.family_scan(family, seed)
+        # Intensity is not physically modelled (see scenes.synthetic): flagged as absent so that
+        # intensity-based steps (Patchwork++'s RNR) are not driven by made-up values.
+        frames.append(Frame(f'{family}_{seed}', np.ascontiguousarray(scan.points), False,
+                            np.asarray(scan.is_ground, dtype=bool).copy(),
+                            np.asarray(scan.returned, dtype=bool).copy(),
+                            member.sensor_height_m))
+        group = member.group
+    description = (f'synthetic family {family!r}, seeds {", ".join(map(str, seeds))} (one random '
+                   'scene each)')
+    return Dataset(family, frames, description, 'synthetic-' + group)
+
+
+def parse_param_values(items) -> dict:
+    """['a=1', 'b=2.0', 'c=true'] -> {'a': 1, 'b': 2.0, 'c': True}, typed like SegmenterParams.
+
+    Raises ValueError naming an unknown parameter or a malformed item.
+    """
+    import dataclasses
+    from gp_ground_segmentation import SegmenterParams
+    fields = {f.name: f for f in dataclasses.fields(SegmenterParams)}
+    out = {}
+    for item in items:
+        name, sep, value = item.partition('=')
+        name = name.strip()
+        if not sep or name not in fields:
+            raise ValueError(f'{item!r}: expected name=value with a SegmenterParams field name')
+        kind = type(fields[name].default)
+        out[name] = (value.strip().lower() in ('1', 'true', 'yes')) if kind is bool \
+            else kind(value)
+    return out
 
 
 def load_unlabeled_kitti(data_dir: Path = DATA_DIR) -> Optional[Dataset]:

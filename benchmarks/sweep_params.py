@@ -17,7 +17,7 @@ import argparse
 import sys
 
 from common import (REPO, command_line, load_labeled_kitti, machine_markdown, markdown_table,
-                    score, synthetic_datasets, update_results_section)
+                    parse_param_values, score, synthetic_datasets, update_results_section)
 
 from gp_ground_segmentation import GroundSegmenter, SegmenterParams  # noqa: E402 (path via common)
 
@@ -28,18 +28,13 @@ DEFAULT_VARIANTS = (
     'num_segments=90', 'num_segments=180', 'outlier_residual_m=0.4',
     'anchor_std_m=3.0', 'plateau_step_m=10.0', 'length_scale_gain_max=200.0',
     'max_length_factor=50.0', 'density_in_flat_branch=true', 'deming_variance_ratio=0.1',
+    'use_elevated_plateaus=false', 'use_anchor=false', 'use_outlier_rejection=false',
 )
 
 
 def parse_variant(text: str) -> dict:
     """'a=1 b=2.0' -> {'a': 1, 'b': 2.0}, typed like the SegmenterParams defaults."""
-    defaults = SegmenterParams()
-    out = {}
-    for item in text.split():
-        name, _, value = item.partition('=')
-        kind = type(getattr(defaults, name))
-        out[name] = (value.lower() in ('1', 'true', 'yes')) if kind is bool else kind(value)
-    return out
+    return parse_param_values(text.split())
 
 
 def main(argv=None) -> int:

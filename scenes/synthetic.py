@@ -69,18 +69,24 @@ __all__ = [
     'HDL64_ELEVATIONS_DEG', 'KIND_NAMES', 'KIND_TERRAIN', 'KIND_BOX', 'KIND_WALL', 'KIND_POLE',
     'KIND_LOW_OBSTACLE', 'KIND_TERRAIN_STEP', 'SCENE_NAMES', 'Box', 'Cylinder', 'Scene',
     'SyntheticScan', 'make_scene', 'simulate_scan', 'scan_scene', 'ground_slope_deg',
+    'KIND_VEGETATION', 'KIND_PERSON', 'KIND_FURNITURE', 'KIND_CEILING', 'KIND_NO_RETURN',
+    'BEAM_PATTERNS', 'FAMILY_NAMES', 'FamilyScene', 'family_scene', 'family_scan',
 ]
 
 #: HDL-64E-like beam elevations (degrees), top beam first (KITTI ring order).
 HDL64_ELEVATIONS_DEG = np.concatenate([np.linspace(2.0, -8.33, 32),
                                        np.linspace(-8.83, -24.33, 32)])
 
-KIND_TERRAIN, KIND_BOX, KIND_WALL, KIND_POLE, KIND_LOW_OBSTACLE, KIND_TERRAIN_STEP = range(6)
+(KIND_TERRAIN, KIND_BOX, KIND_WALL, KIND_POLE, KIND_LOW_OBSTACLE, KIND_TERRAIN_STEP,
+ KIND_VEGETATION, KIND_PERSON, KIND_FURNITURE, KIND_CEILING) = range(10)
+KIND_NO_RETURN = -1  # organised scans only: a ray with no return, stored as (0, 0, 0)
 KIND_NAMES = {KIND_TERRAIN: 'terrain', KIND_BOX: 'box', KIND_WALL: 'wall', KIND_POLE: 'pole',
-              KIND_LOW_OBSTACLE: 'low_obstacle', KIND_TERRAIN_STEP: 'terrain_step'}
+              KIND_LOW_OBSTACLE: 'low_obstacle', KIND_TERRAIN_STEP: 'terrain_step',
+              KIND_VEGETATION: 'vegetation', KIND_PERSON: 'person', KIND_FURNITURE: 'furniture',
+              KIND_CEILING: 'ceiling', KIND_NO_RETURN: 'no_return'}
 _GROUND_KINDS = (KIND_TERRAIN, KIND_TERRAIN_STEP)
 # Base reflectance per kind (dimensionless, [0, 1]); only so the intensity channel is not constant.
-_BASE_INTENSITY = np.array([0.25, 0.6, 0.45, 0.5, 0.4, 0.3])
+_BASE_INTENSITY = np.array([0.25, 0.6, 0.45, 0.5, 0.4, 0.3, 0.2, 0.35, 0.5, 0.55])
 
 # A terrain hit whose bracket spans a height change steeper than this (|dh| / horizontal distance)
 # lies on a vertical discontinuity (curb face). 5 ~ 79 degrees; no smooth scene terrain is steeper.
@@ -402,6 +408,8 @@ class Scene:
     def check(self, sensor_clearance_m=1.5):
         """Raise ValueError if an obstacle comes near the sensor or floats above the terrain."""
         for i, ob in enumerate(self.obstacles):
+            if ob.kind == KIND_CEILING:  # above the sensor and hung from walls, by design
+                continue
             xy = ob.footprint_xy()
             # Is the sensor's xy within the footprint (grown by the clearance)?
             if isinstance(ob, Box):
@@ -555,7 +563,9 @@ class SyntheticScan:
     is_ground: (N,) bool truth. kind: (N,) int8 (``KIND_NAMES``). instance: (N,) int16 index into
     ``scene.obstacles`` or -1 for terrain. ring: (N,) int16 beam index (0 = top beam). column: (N,)
     int16 azimuth firing index (azimuth = column * 360 / azimuth_steps degrees from +x, CCW).
-    sensor_z_world: height of the sensor in the world frame (m).
+    sensor_z_world: height of the sensor in the world frame (m). returned: (N,) bool, False only
+    for the (0, 0, 0) no-return rows of an organised scan (never ground; leave them unscored).
+    rotation: the mount's world-from-sensor rotation (identity unless pitched or rolled).
     """
 
     name: str
@@ -568,14 +578,16 @@ class SyntheticScan:
     scene: Scene
     sensor_z_world: float
     elevations_deg: np.ndarray = field(repr=False, default=None)
+    returned: np.ndarray = field(repr=False, default=None)  # (N,) bool; False = (0,0,0) no-return
+    rotation: np.ndarray = field(repr=False, default=None)  # world-from-sensor (3, 3) of the mount
 
     def terrain_z(self, x, y):
-        """Terrain height below sensor-frame (x, y), in the sensor frame (m)."""
+        """Terrain height below sensor-frame (x, y), in the sensor frame (m); level mounts."""
         return self.scene.height(x, y) - self.sensor_z_world
 
     def to_world(self, xyz):
         """Sensor-frame xyz (N, 3) -> world frame (float64)."""
-        w = np.asarray(xyz, dtype=float)[:, :3].copy()
+        w = np.asarray(xyz, dtype=float)[:, :3] @ self.rotation.T
         w[:, 2] += self.sensor_z_world
         return w
 
@@ -595,26 +607,34 @@ def _range_grid(max_range_m):
     return np.concatenate([near, 20.0 * 1.01 ** np.arange(n_far), [max_range_m]])
 
 
-def _cast_terrain(h, zs, tan_el, cos_az, sin_az, max_range_m, beam_chunk=8):
+def _cast_terrain(h, zs, d_world, max_range_m, beam_chunk=8):
     """Horizontal range r (m) of the first terrain hit per ray (n_el, n_az); inf if none.
 
-    Also returns True where the hit lies on a vertical discontinuity (terrain step).
+    ``d_world`` (n_el, n_az, 3) are the unit ray directions in the world. Also returns True where
+    the hit lies on a vertical discontinuity (terrain step). A level sensor's rays of one firing
+    share one horizontal direction, so the terrain profile is sampled once per azimuth; a tilted
+    sensor's rays each have their own, sampled per beam chunk.
     """
+    horiz = np.hypot(d_world[..., 0], d_world[..., 1])
+    tan_el = d_world[..., 2] / horiz
+    cos_az, sin_az = d_world[..., 0] / horiz, d_world[..., 1] / horiz
+    level = bool(np.allclose(cos_az, cos_az[:1]) and np.allclose(sin_az, sin_az[:1]))
     r_grid = _range_grid(max_range_m)
-    # Terrain profile along every azimuth's radial line, shared by the 64 beams: (n_az, n_r).
-    H = h(cos_az[:, None] * r_grid, sin_az[:, None] * r_grid)
-    n_el, n_az = len(tan_el), len(cos_az)
+    n_el, n_az = tan_el.shape
+    if level:  # profile along every azimuth's radial line, shared by all beams: (n_az, n_r)
+        H = h(cos_az[0, :, None] * r_grid, sin_az[0, :, None] * r_grid)
     k_hit = np.full((n_el, n_az), -1, dtype=np.int64)
     for b0 in range(0, n_el, beam_chunk):
-        te = tan_el[b0:b0 + beam_chunk, None, None]
-        below = (zs + te * r_grid) <= H          # (chunk, n_az, n_r): ray at or below terrain
+        rows = slice(b0, b0 + beam_chunk)
+        Hc = H if level else h(cos_az[rows, :, None] * r_grid, sin_az[rows, :, None] * r_grid)
+        below = (zs + tan_el[rows, :, None] * r_grid) <= Hc   # ray at or below terrain
         first = below.argmax(axis=2)
-        k_hit[b0:b0 + beam_chunk] = np.where(below.any(axis=2), first, -1)
+        k_hit[rows] = np.where(below.any(axis=2), first, -1)
     r_hit = np.full((n_el, n_az), np.inf)
     e_idx, a_idx = np.nonzero(k_hit > 0)          # k = 0 is impossible: the sensor is above ground
     k = k_hit[e_idx, a_idx]
     lo, hi = r_grid[k - 1], r_grid[k]
-    te, ca, sa = tan_el[e_idx], cos_az[a_idx], sin_az[a_idx]
+    te, ca, sa = tan_el[e_idx, a_idx], cos_az[e_idx, a_idx], sin_az[e_idx, a_idx]
     # Bisection on the exact terrain: f(lo) > 0 >= f(hi). Step <= 1.01 m at 100 m -> 14 halvings
     # reach < 0.1 mm; a couple more for margin.
     n_iter = int(math.ceil(math.log2(max(np.max(hi - lo, initial=1e-9), 1e-9) / 5e-5))) + 1
@@ -629,6 +649,16 @@ def _cast_terrain(h, zs, tan_el, cos_az, sin_az, max_range_m, beam_chunk=8):
     is_step = np.zeros((n_el, n_az), dtype=bool)
     is_step[e_idx, a_idx] = step
     return r_hit, is_step
+
+
+def _sensor_rotation(pitch_deg, roll_deg):
+    """World-from-sensor rotation of a mount pitched (nose down > 0) and rolled (left up > 0)."""
+    p, r = math.radians(pitch_deg), math.radians(roll_deg)
+    rot_y = np.array([[math.cos(p), 0.0, math.sin(p)], [0.0, 1.0, 0.0],
+                      [-math.sin(p), 0.0, math.cos(p)]])
+    rot_x = np.array([[1.0, 0.0, 0.0], [0.0, math.cos(r), -math.sin(r)],
+                      [0.0, math.sin(r), math.cos(r)]])
+    return rot_y @ rot_x
 
 
 def _azimuth_columns(ob, azimuth_steps):
@@ -652,13 +682,16 @@ def _azimuth_columns(ob, azimuth_steps):
 
 def simulate_scan(scene, *, elevations_deg=HDL64_ELEVATIONS_DEG, azimuth_steps=2000,
                   sensor_height_m=1.73, range_noise_m=0.02, max_range_m=100.0,
-                  seed=0) -> SyntheticScan:
+                  pitch_deg=0.0, roll_deg=0.0, organized=False, seed=0) -> SyntheticScan:
     """Ray-cast one full revolution of a spinning LiDAR in ``scene`` (a Scene or a scene name).
 
-    elevations_deg: beam elevations (degrees, up positive); azimuth_steps: firings per revolution;
-    sensor_height_m: sensor height above h(0, 0) (m); range_noise_m: std of the Gaussian noise
-    added along each ray (m); max_range_m: farthest return (m, on the true range); seed: RNG seed
-    for the noise. Points are ordered by beam (top first), then azimuth (from +x, counter-
+    elevations_deg: beam elevations (degrees, up positive, in the sensor frame); azimuth_steps:
+    firings per revolution; sensor_height_m: sensor height above h(0, 0) (m); range_noise_m: std
+    of the Gaussian noise added along each ray (m); max_range_m: farthest return (m, on the true
+    range); pitch_deg / roll_deg: mount tilt (degrees; the returned points stay in the tilted
+    sensor frame, as a real tilted sensor reports them); organized: keep one row per ray, rays
+    without a return as (0, 0, 0) points with ``kind`` KIND_NO_RETURN (Ouster-like); seed: RNG
+    seed for the noise. Points are ordered by beam (top first), then azimuth (from +x, counter-
     clockwise).
     """
     if isinstance(scene, str):
@@ -668,52 +701,60 @@ def simulate_scan(scene, *, elevations_deg=HDL64_ELEVATIONS_DEG, azimuth_steps=2
                          'range_noise_m >= 0')
     el = np.radians(np.asarray(elevations_deg, dtype=float))
     az = np.arange(azimuth_steps) * (2 * np.pi / azimuth_steps)
-    cos_az, sin_az = np.cos(az), np.sin(az)
     zs = float(scene.height(0.0, 0.0)) + sensor_height_m
     origin = np.array([0.0, 0.0, zs])
+    d_sensor = np.empty((len(el), azimuth_steps, 3))
+    d_sensor[..., 0] = np.cos(el)[:, None] * np.cos(az)
+    d_sensor[..., 1] = np.cos(el)[:, None] * np.sin(az)
+    d_sensor[..., 2] = np.sin(el)[:, None]
+    tilted = pitch_deg != 0 or roll_deg != 0
+    rotation = _sensor_rotation(pitch_deg, roll_deg)
+    d = d_sensor @ rotation.T if tilted else d_sensor
 
-    # Terrain (in horizontal range r, converted to ray range t = r / cos(el)).
-    r_ter, is_step = _cast_terrain(scene.terrain, zs, np.tan(el), cos_az, sin_az, max_range_m)
-    t_ter = (r_ter / np.cos(el)[:, None]).ravel()
+    # Terrain (in horizontal range r, converted to ray range t = r / cos(world elevation)).
+    r_ter, is_step = _cast_terrain(scene.terrain, zs, d, max_range_m)
+    t_ter = (r_ter / np.hypot(d[..., 0], d[..., 1])).ravel()
 
     # Obstacles, exact.
-    d = np.empty((len(el), azimuth_steps, 3))
-    d[..., 0] = np.cos(el)[:, None] * cos_az
-    d[..., 1] = np.cos(el)[:, None] * sin_az
-    d[..., 2] = np.sin(el)[:, None]
     t_obs = np.full((len(el), azimuth_steps), np.inf)
     inst = np.full((len(el), azimuth_steps), -1, dtype=np.int16)
+    all_cols = np.arange(azimuth_steps)
     for i, ob in enumerate(scene.obstacles):
         # Only the azimuth columns that can see the primitive (its footprint's angular span from
         # the sensor, plus one step) are intersected: a large speed-up for many small primitives.
-        cols = _azimuth_columns(ob, azimuth_steps)
+        # A tilted sensor's firings are not vertical fans, so it tests every column.
+        cols = all_cols if tilted else _azimuth_columns(ob, azimuth_steps)
         t = ob.intersect(origin, d[:, cols].reshape(-1, 3)).reshape(len(el), len(cols))
         sub_t, sub_i = t_obs[:, cols], inst[:, cols]
         closer = t < sub_t
         t_obs[:, cols] = np.where(closer, t, sub_t)
         inst[:, cols] = np.where(closer, i, sub_i)
-    d = d.reshape(-1, 3)
+    d_sensor = d_sensor.reshape(-1, 3)
     t_obs, inst = t_obs.ravel(), inst.ravel()
 
     ground = t_ter <= t_obs
     t = np.where(ground, t_ter, t_obs)
     keep = np.isfinite(t) & (t <= max_range_m)
-    idx = np.nonzero(keep)[0]
-    t, ground = t[idx], ground[idx]
-    inst = np.where(ground, -1, inst[idx]).astype(np.int16)
+    idx = np.arange(t.size) if organized else np.nonzero(keep)[0]
+    returned = keep[idx]
+    t, ground = t[idx], ground[idx] & returned
+    inst = np.where(ground | ~returned, -1, inst[idx]).astype(np.int16)
     obstacle_kind = np.array([ob.kind for ob in scene.obstacles] + [KIND_TERRAIN], dtype=np.int8)
     kind = np.where(ground, np.where(is_step.ravel()[idx], KIND_TERRAIN_STEP, KIND_TERRAIN),
                     obstacle_kind[inst]).astype(np.int8)
+    kind[~returned] = KIND_NO_RETURN
 
     rng = np.random.default_rng(seed)
-    t_noisy = t + rng.normal(0.0, range_noise_m, len(t)) if range_noise_m > 0 else t
-    pts = np.empty((len(t), 4), dtype=np.float32)
-    pts[:, :3] = d[idx] * t_noisy[:, None]
-    pts[:, 3] = np.clip(_BASE_INTENSITY[kind] + rng.normal(0.0, 0.05, len(t)), 0.0, 1.0)
+    noise = rng.normal(0.0, range_noise_m, len(t)) if range_noise_m > 0 else 0.0
+    t_noisy = np.where(returned, t + noise, 0.0)
+    pts = np.zeros((len(t), 4), dtype=np.float32)
+    pts[:, :3] = d_sensor[idx] * t_noisy[:, None]
+    pts[:, 3] = np.clip(_BASE_INTENSITY[np.maximum(kind, 0)] + rng.normal(0.0, 0.05, len(t)),
+                        0.0, 1.0) * returned
     ring = (idx // azimuth_steps).astype(np.int16)
     column = (idx % azimuth_steps).astype(np.int16)
     return SyntheticScan(scene.name, pts, ground, kind, inst, ring, column, scene, zs,
-                         np.asarray(elevations_deg, dtype=float))
+                         np.asarray(elevations_deg, dtype=float), returned, rotation)
 
 
 @functools.lru_cache(maxsize=16)
@@ -723,3 +764,285 @@ def scan_scene(name: str, seed: int = 0) -> SyntheticScan:
     for a in (scan.points, scan.is_ground, scan.kind, scan.instance, scan.ring, scan.column):
         a.flags.writeable = False
     return scan
+
+
+# ----------------------------------------------------------------------------------------------
+# Randomised scene families (one scene per seed) that stress particular failure mechanisms
+# ----------------------------------------------------------------------------------------------
+
+#: Beam elevations (degrees, top first) of the beam-count families: VLP-16, HDL-32E, Ouster
+#: OS1-64 (gen 1, 33.2 degree field of view, like RELLIS-3D's) and Ouster OS1-128.
+BEAM_PATTERNS = {
+    16: np.linspace(15.0, -15.0, 16),
+    32: np.linspace(10.67, -30.67, 32),
+    64: np.linspace(16.6, -16.6, 64),
+    128: np.linspace(22.5, -22.5, 128),
+}
+
+# Firings per revolution of every family scan: Ouster's 1024 mode, and small enough (about
+# 60k points at 64 beams) that a benchmark runs several seeds of every family in minutes.
+FAMILY_AZIMUTH_STEPS = 1024
+
+
+@dataclass(frozen=True)
+class FamilyScene:
+    """A family member: the scene, how it is scanned (``simulate_scan`` keywords) and notes."""
+
+    scene: Scene
+    scan_kwargs: dict
+    group: str  # sloped, clutter, near, indoor, mount, beams
+    sensor_height_m: float
+    description: str
+
+
+def _polar(rng, r_lo, r_hi, az_lo=-180.0, az_hi=180.0):
+    """A random world (x, y) at horizontal range [r_lo, r_hi] (m) and azimuth (degrees)."""
+    r, a = rng.uniform(r_lo, r_hi), math.radians(rng.uniform(az_lo, az_hi))
+    return r * math.cos(a), r * math.sin(a)
+
+
+def _clutter(h, rng, cars=5, poles=4, r_lo=6.0, r_hi=40.0, az=(-180.0, 180.0)):
+    """Random cars (any yaw) and poles at ranges [r_lo, r_hi] (m) on terrain h."""
+    obs = [_car(h, *_polar(rng, r_lo, r_hi, *az), yaw_deg=rng.uniform(0, 360))
+           for _ in range(cars)]
+    obs += [_pole(h, *_polar(rng, r_lo, r_hi, *az), radius=rng.uniform(0.1, 0.3),
+                  height=rng.uniform(2.5, 6.0)) for _ in range(poles)]
+    return obs
+
+
+def _family_crest(rng):
+    heading = rng.uniform(-180, 180)
+    crest = rng.uniform(3.0, 12.0)
+    up, down, length = rng.uniform(2.0, 8.0), rng.uniform(12.0, 30.0), rng.uniform(12.0, 40.0)
+    h = TerrainSum((Ramp(up, -60.0, crest, 2.0, heading),
+                    Ramp(-down, crest, crest + length, 2.0, heading)))
+    obs = _clutter(h, rng, cars=3, poles=3, r_lo=crest + 6.0, r_hi=45.0,
+                   az=(heading - 40, heading + 40))
+    obs += _clutter(h, rng, cars=2, poles=2, r_lo=5.0, r_hi=20.0,
+                    az=(heading + 90, heading + 270))
+    return (h, obs, 'sloped', {}, f'{up:.0f} deg uphill to a crest {crest:.1f} m ahead '
+            f'(heading {heading:.0f} deg), then {down:.0f} deg downhill for {length:.0f} m to a '
+            'low flat; cars, poles')
+
+
+def _family_valley(rng):
+    heading = rng.uniform(-180, 180)
+    half_width = rng.uniform(3.0, 8.0)
+    left, right, along = rng.uniform(10, 25), rng.uniform(10, 25), rng.uniform(-5, 5)
+    h = TerrainSum((Ramp(left, half_width, half_width + 30, 3.0, heading + 90),
+                    Ramp(right, half_width, half_width + 30, 3.0, heading + 90, backward=True),
+                    Plane(along, heading)))
+    obs = _clutter(h, rng, cars=4, poles=4, r_lo=6.0, r_hi=40.0)
+    return (h, obs, 'sloped', {}, f'valley floor {2 * half_width:.1f} m wide along heading '
+            f'{heading:.0f} deg sloping {along:.1f} deg, sides rising {left:.0f} / {right:.0f} '
+            'deg; cars, poles on floor and sides')
+
+
+def _family_cross_slope(rng):
+    heading = rng.uniform(-180, 180)
+    start, angle = rng.uniform(2.5, 6.0), rng.uniform(10.0, 25.0)
+    h = TerrainSum((Ramp(angle, start, start + 40.0, 1.0, heading + 90),
+                    Plane(rng.uniform(-3, 3), heading)))
+    obs = _clutter(h, rng, cars=3, poles=3, r_lo=6.0, r_hi=40.0,
+                   az=(heading - 120, heading - 60))
+    obs += _clutter(h, rng, cars=2, poles=2, r_lo=8.0, r_hi=40.0, az=(heading + 20, heading + 160))
+    return (h, obs, 'sloped', {}, f'road along heading {heading:.0f} deg; {start:.1f} m to its '
+            f'left a {angle:.0f} deg embankment rises ACROSS the beams that run along the road')
+
+
+def _family_rough(rng):
+    bumps = tuple(Gaussian(*_polar(rng, 0.0, 60.0), rng.choice((-1, 1)) * rng.uniform(0.05, 0.4),
+                           rng.uniform(0.6, 3.0)) for _ in range(40))
+    slope, direction = rng.uniform(0, 6), rng.uniform(-180, 180)
+    h = TerrainSum((Plane(slope, direction),) + bumps)
+    obs = _clutter(h, rng, cars=3, poles=5, r_lo=6.0, r_hi=40.0)
+    return (h, obs, 'sloped', {}, f'rough terrain: {slope:.1f} deg plane plus 40 bumps and dips '
+            '0.05-0.4 m high, 0.6-3 m wide; cars, poles')
+
+
+def _family_vegetation(rng):
+    h = TerrainSum((Plane(rng.uniform(0, 5), rng.uniform(-180, 180)),
+                    Gaussian(*_polar(rng, 10, 30), 1.0, 6.0)))
+    obs = []
+    for _ in range(45):  # bushes: vertical cylinders 0.3-1.5 m high
+        x, y = _polar(rng, 3.0, 40.0)
+        z = float(h(x, y))
+        obs.append(Cylinder(x, y, rng.uniform(0.3, 1.2), z - 0.3, z + rng.uniform(0.3, 1.5),
+                            KIND_VEGETATION, 'bush'))
+    for _ in range(30):  # low vegetation: 0.15-0.35 m high tufts
+        x, y = _polar(rng, 2.5, 30.0)
+        z = float(h(x, y))
+        obs.append(Cylinder(x, y, rng.uniform(0.2, 0.6), z - 0.2, z + rng.uniform(0.15, 0.35),
+                            KIND_VEGETATION, 'low vegetation'))
+    obs += [_pole(h, *_polar(rng, 5.0, 40.0), radius=rng.uniform(0.15, 0.4), height=6.0,
+                  label='tree trunk') for _ in range(8)]
+    return (h, obs, 'clutter', {}, 'gentle slope and a 1 m mound; 45 bushes 0.3-1.5 m high, 30 '
+            'low tufts 0.15-0.35 m, 8 tree trunks (all non-ground)')
+
+
+def _family_fences(rng):
+    heading = rng.uniform(-180, 180)
+    c, s = math.cos(math.radians(heading)), math.sin(math.radians(heading))
+    h = CrownedRoad(half_width=rng.uniform(3.0, 5.0))
+    h = _Rotated(h, heading)
+    obs = []
+    for side in (-1, 1):
+        off = side * rng.uniform(3.5, 6.0)
+        for k in range(-3, 3):  # fence panels 1-2 m high along the road, with gaps
+            a, b = k * 12.0 + rng.uniform(0, 2), k * 12.0 + rng.uniform(8, 11)
+            obs += _wall(h, *_road_xy(a, off, c, s), *_road_xy(b, off, c, s),
+                         height=rng.uniform(1.0, 2.0), thickness=0.05, label='fence')
+        wall_off = off + side * rng.uniform(3.0, 6.0)
+        obs += _wall(h, *_road_xy(-50, wall_off, c, s), *_road_xy(50, wall_off, c, s),
+                     height=rng.uniform(2.5, 4.0), label='building wall')
+    for _ in range(4):
+        a, off = rng.uniform(-35, 35), rng.choice((-1, 1)) * rng.uniform(1.5, 2.5)
+        if abs(a) > 6:
+            obs.append(_car(h, *_road_xy(a, off, c, s), yaw_deg=heading))
+    return (h, obs, 'clutter', {}, f'street along heading {heading:.0f} deg: crowned road with '
+            'curbs, fence panels 1-2 m high with gaps 3.5-6 m to both sides, building walls '
+            'behind, parked cars')
+
+
+@dataclass(frozen=True)
+class _Rotated:
+    """A terrain ``h`` given in road coordinates (along, across), turned to ``heading_deg``."""
+
+    h: object
+    heading_deg: float
+
+    def __call__(self, x, y):
+        a = math.radians(self.heading_deg)
+        c, s = math.cos(a), math.sin(a)
+        return self.h(c * x + s * y, -s * x + c * y)
+
+
+def _road_xy(along, across, c, s):
+    return along * c - across * s, along * s + across * c
+
+
+def _family_near(rng):
+    h = Plane(rng.uniform(0, 4), rng.uniform(-180, 180))
+    az_p, az_c = rng.uniform(-180, 180), rng.uniform(-180, 180)
+    d_p = rng.uniform(1.0, 2.5)  # to the person's axis
+    xp, yp = d_p * math.cos(math.radians(az_p)), d_p * math.sin(math.radians(az_p))
+    zp = float(h(xp, yp))
+    obs = [Cylinder(xp, yp, 0.25, zp - 0.3, zp + rng.uniform(1.6, 1.85), KIND_PERSON, 'person')]
+    gap = rng.uniform(0.8, 2.0)  # sensor to the car's near side (m)
+    a = math.radians(az_c)
+    obs.append(_car(h, (gap + 0.9) * math.cos(a), (gap + 0.9) * math.sin(a),
+                    yaw_deg=az_c + 90.0, label='near car'))
+    obs += _clutter(h, rng, cars=3, poles=3, r_lo=8.0, r_hi=40.0)
+    return (h, obs, 'near', {'clearance': 0.5},
+            f'a person {d_p:.1f} m and a car {gap:.1f} m from the sensor, plus far clutter')
+
+
+def _family_indoor(rng):
+    h = Plane(0.0)
+    lx, ly = rng.uniform(6, 14), rng.uniform(5, 10)
+    ox, oy = rng.uniform(-0.3, 0.3) * lx, rng.uniform(-0.3, 0.3) * ly
+    x0, x1, y0, y1 = ox - lx / 2, ox + lx / 2, oy - ly / 2, oy + ly / 2
+    height = rng.uniform(2.6, 3.2)
+    obs = []
+    for (a, b, c, d) in ((x0, y0, x1, y0), (x1, y0, x1, y1), (x1, y1, x0, y1), (x0, y1, x0, y0)):
+        obs += _wall(h, a, b, c, d, height=height, thickness=0.2, label='room wall')
+    obs.append(Box(np.array([ox, oy, height]), np.eye(3), lx / 2 + 0.5, ly / 2 + 0.5, 0.2, 0.0,
+                   KIND_CEILING, 'ceiling'))
+
+    def free_xy(margin):
+        while True:
+            x, y = rng.uniform(x0 + margin, x1 - margin), rng.uniform(y0 + margin, y1 - margin)
+            if math.hypot(x, y) > 1.2 + margin:
+                return x, y
+
+    kinds = (('table', (0.8, 1.6), (0.6, 0.9), (0.7, 0.8)), ('chair', (0.4, 0.5), (0.4, 0.5),
+             (0.42, 0.5)), ('cabinet', (0.8, 1.2), (0.4, 0.6), (1.6, 2.0)),
+             ('sofa', (1.6, 2.2), (0.8, 0.9), (0.4, 0.8)))
+    for _ in range(int(rng.integers(5, 10))):
+        name, ll, ww, hh = kinds[int(rng.integers(len(kinds)))]
+        x, y = free_xy(0.6)
+        obs.append(_box_on_terrain(h, x, y, rng.uniform(0, 180), rng.uniform(*ll),
+                                   rng.uniform(*ww), rng.uniform(*hh), KIND_FURNITURE,
+                                   mode='upright', bury=0.1, label=name))
+    x, y = free_xy(0.4)
+    obs.append(Cylinder(x, y, rng.uniform(0.2, 0.35), -0.2, height, KIND_POLE, 'column'))
+    mount = rng.uniform(0.3, 0.8)
+    return (h, obs, 'indoor', {'sensor_height_m': mount, 'elevations_deg': BEAM_PATTERNS[32],
+                               'max_range_m': 40.0},
+            f'room {lx:.1f} x {ly:.1f} m, ceiling {height:.1f} m, furniture, a column; 32-beam '
+            f'sensor {mount:.2f} m above the floor')
+
+
+def _family_tilted(rng):
+    h = TerrainSum((CrownedRoad(sides=int(rng.choice((-1, 0, 1)))),
+                    Gaussian(*_polar(rng, 15, 30), 0.8, 5.0)))
+    pitch = rng.choice((-1, 1)) * rng.uniform(3.0, 10.0)
+    roll = rng.choice((-1, 1)) * rng.uniform(0.0, 10.0)
+    obs = _clutter(h, rng, cars=5, poles=4, r_lo=6.0, r_hi=40.0)
+    obs += _wall(h, -50.0, 9.0, 50.0, 9.0, height=3.0)
+    return (h, obs, 'mount', {'pitch_deg': pitch, 'roll_deg': roll},
+            f'street scene seen by a mount pitched {pitch:.1f} deg and rolled {roll:.1f} deg')
+
+
+def _family_mount_height(rng, seed):
+    heights = (0.5, 1.5, 2.5)
+    mount = heights[seed] if 0 <= seed < len(heights) else rng.uniform(0.5, 2.5)
+    h = TerrainSum((Plane(rng.uniform(0, 4), rng.uniform(-180, 180)),
+                    Gaussian(*_polar(rng, 12, 30), 1.0, 5.0)))
+    obs = _clutter(h, rng, cars=5, poles=5, r_lo=5.0, r_hi=40.0)
+    return (h, obs, 'mount', {'sensor_height_m': mount},
+            f'gentle slope with a mound, cars and poles; sensor {mount:.2f} m above the ground')
+
+
+def _family_beams(rng, beams):
+    h = TerrainSum((Plane(rng.uniform(0, 6), rng.uniform(-180, 180)),
+                    Gaussian(*_polar(rng, 12, 30), rng.uniform(0.5, 2.0), 6.0)))
+    obs = _clutter(h, rng, cars=5, poles=5, r_lo=5.0, r_hi=40.0)
+    cx, cy = _polar(rng, 12, 20)  # a wall across the line of sight, 10-20 m long
+    half = rng.uniform(5, 10) / math.hypot(cx, cy)
+    obs += _wall(h, cx - half * cy, cy + half * cx, cx + half * cy, cy - half * cx, height=2.5)
+    return (h, obs, 'beams', {'elevations_deg': BEAM_PATTERNS[beams], 'organized': True},
+            f'{beams}-beam organised scan ({BEAM_PATTERNS[beams][0]:+.1f} to '
+            f'{BEAM_PATTERNS[beams][-1]:+.1f} deg), no-returns kept as (0, 0, 0); gentle slope, '
+            'mound, cars, poles, a wall')
+
+
+_FAMILIES = {
+    'crest': _family_crest,
+    'valley': _family_valley,
+    'cross_slope': _family_cross_slope,
+    'rough': _family_rough,
+    'vegetation': _family_vegetation,
+    'fences_walls': _family_fences,
+    'near_person_car': _family_near,
+    'indoor': _family_indoor,
+    'tilted': _family_tilted,
+    'mount_height': None,
+    'beams16': None, 'beams32': None, 'beams64': None, 'beams128': None,
+}
+FAMILY_NAMES = tuple(_FAMILIES)
+
+
+def family_scene(family: str, seed: int) -> FamilyScene:
+    """Member ``seed`` of a randomised scene family (``FAMILY_NAMES``); deterministic per seed."""
+    if family not in _FAMILIES:
+        raise ValueError(f'family: unknown {family!r}; choose one of {", ".join(FAMILY_NAMES)}')
+    rng = np.random.default_rng([seed, FAMILY_NAMES.index(family)])
+    if family == 'mount_height':
+        h, obs, group, extra, text = _family_mount_height(rng, seed)
+    elif family.startswith('beams'):
+        h, obs, group, extra, text = _family_beams(rng, int(family[5:]))
+    else:
+        h, obs, group, extra, text = _FAMILIES[family](rng)
+    extra = dict(extra)
+    clearance = extra.pop('clearance', 1.5)
+    scene = Scene(f'{family}_{seed}', h, tuple(obs), text)
+    scene.check(clearance)
+    kwargs = {'azimuth_steps': FAMILY_AZIMUTH_STEPS, **extra}
+    return FamilyScene(scene, kwargs, group, kwargs.get('sensor_height_m', 1.73), text)
+
+
+def family_scan(family: str, seed: int) -> SyntheticScan:
+    """The scan of ``family_scene(family, seed)``; the noise is drawn from the same seed."""
+    member = family_scene(family, seed)
+    return simulate_scan(member.scene, seed=seed, **member.scan_kwargs)

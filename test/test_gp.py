@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 from scipy.stats import multivariate_normal
 
-from gp_ground_segmentation.core import gp as gp_module
 from gp_ground_segmentation.core import gp_compiled
-from gp_ground_segmentation.core.gp import FrameGP, length_scale_factors, paciorek_kernel
+from gp_ground_segmentation.core.gp import (FrameGP, GroundAnchor, length_scale_factors,
+                                            paciorek_kernel)
 
 BOUNDS = [(0.01, 20.0), (0.05, 200.0), (0.005, 2.0)]
 
@@ -85,7 +85,7 @@ def dense_posterior(r_train, z_train, l_train, noise, mean, sigma_f, r_star, l_s
 def slot_of(gp, m, k):
     """Padded (s, j) slot of candidate (segment m, bin k)."""
     s = int(np.flatnonzero(gp.segments == m)[0])
-    j = int(np.flatnonzero(gp.columns[s] == k)[0])
+    j = int(np.flatnonzero(gp.bins[s] == k)[0])
     assert gp.valid[s, j]
     return s, j
 
@@ -145,12 +145,47 @@ def test_frame_gp_layout():
     assert gp.n_max == mask.sum(axis=1).max() and gp.num_points == mask.sum()
     assert gp.mean == np.median(z[mask])
     for s, m in enumerate(gp.segments):
-        k = gp.columns[s][gp.valid[s]]
+        k = gp.bins[s][gp.valid[s]]
         np.testing.assert_array_equal(k, np.flatnonzero(mask[m]))  # bin order
         np.testing.assert_array_equal(gp.r[s][gp.valid[s]], r[m, k])
         np.testing.assert_allclose(gp.z[s][gp.valid[s]], z[m, k] - gp.mean, rtol=1e-15)
     assert np.isfinite(gp.r).all() and np.isfinite(gp.z).all()
     assert FrameGP(r, z, d, mask, mean=0.25).mean == 0.25
+    assert not gp.is_anchor.any()
+    np.testing.assert_array_equal(gp.to_grid(gp.valid, False), mask)  # and back
+
+
+def test_frame_gp_anchor_is_an_explicit_first_point():
+    """The anchor enters the segments it names before their candidates, with its own noise
+    and d, counts in the prior mean once per segment, and never shows up on the grid."""
+    r, z, d, mask = random_problem(4)
+    segments = mask.any(axis=1)
+    segments[0] = True  # a segment with the anchor only
+    anchor = GroundAnchor(-1.5, 0.09, segments, np.linspace(1.0, 2.0, mask.shape[0]))
+    gp = FrameGP(r, z, d, mask, anchor=anchor)
+    np.testing.assert_array_equal(gp.segments, np.flatnonzero(segments))
+    assert gp.num_points == mask.sum() + segments.sum()
+    assert gp.mean == np.median(np.concatenate([z[mask], np.full(segments.sum(), -1.5)]))
+    for s, m in enumerate(gp.segments):
+        assert gp.is_anchor[s, 0] and not gp.is_anchor[s, 1:].any() and gp.bins[s, 0] == -1
+        assert gp.r[s, 0] == 0.0 and gp.z[s, 0] == -1.5 - gp.mean
+        assert gp.d[s, 0] == anchor.length_factor[m] and gp.noise_var[s, 0] == 0.09
+        np.testing.assert_array_equal(gp.bins[s, 1:][gp.valid[s, 1:]], np.flatnonzero(mask[m]))
+    np.testing.assert_array_equal(gp.to_grid(gp.valid, False), mask)
+    # the LML is that of the dense problem with the anchor as one more point
+    theta = np.array([0.6, 2.0, 0.1])
+    r2, z2, d2, mask2 = (np.concatenate([col, a], axis=1) for col, a in (
+        (np.zeros((5, 1)), r), (np.full((5, 1), -1.5), z), (anchor.length_factor[:, None], d),
+        (segments[:, None], mask)))
+    extra = np.zeros_like(r2)
+    extra[:, 0] = 0.09
+    assert gp.solve(theta).lml == pytest.approx(
+        dense_lml(r2, z2, d2, mask2, theta, gp.mean, extra), rel=1e-10)
+    # new noise leaves the anchor's own and the original object alone
+    noisier = gp.with_noise(np.full(mask.shape, 0.5))
+    assert np.all(noisier.noise_var[gp.is_anchor] == 0.09)
+    assert np.all(noisier.noise_var[gp.valid & ~gp.is_anchor] == 0.5)
+    assert np.all(gp.noise_var[gp.valid & ~gp.is_anchor] == 0.0)
 
 
 @pytest.mark.parametrize('seed', range(4))
@@ -162,24 +197,23 @@ def test_lml_equals_sum_of_multivariate_normal_logpdf(seed):
         theta = random_theta(rng)
         lml, _ = gp.lml_and_gradient(np.log(theta))
         assert lml == pytest.approx(dense_lml(r, z, d, mask, theta, gp.mean), rel=1e-10)
-    # with per-candidate extra noise
+    # with per-candidate extra noise, given at construction or derived
     extra = np.zeros_like(r)
     pick = np.argwhere(mask)[rng.choice(mask.sum(), 3, replace=False)]
     for m, k in pick:
-        s, j = slot_of(gp, m, k)
-        gp.extra_noise[s, j] = extra[m, k] = rng.uniform(0.01, 5.0)
+        extra[m, k] = rng.uniform(0.01, 5.0)
     theta = random_theta(rng)
-    lml, _ = gp.lml_and_gradient(np.log(theta))
+    lml, _ = FrameGP(r, z, d, mask, noise_var=extra).lml_and_gradient(np.log(theta))
+    assert lml == pytest.approx(dense_lml(r, z, d, mask, theta, gp.mean, extra), rel=1e-10)
+    lml, _ = gp.with_noise(extra).lml_and_gradient(np.log(theta))
     assert lml == pytest.approx(dense_lml(r, z, d, mask, theta, gp.mean, extra), rel=1e-10)
 
 
 @pytest.mark.parametrize('seed', range(6))
 def test_lml_gradient_matches_finite_differences(seed):
     r, z, d, mask = random_problem(20 + seed, m_count=4, n_count=8)
-    gp = FrameGP(r, z, d, mask)
     rng = np.random.default_rng(100 + seed)
-    if seed % 2:
-        gp.extra_noise[gp.valid] = rng.uniform(0, 0.2, gp.num_points)
+    gp = FrameGP(r, z, d, mask, noise_var=rng.uniform(0, 0.2, r.shape) if seed % 2 else None)
     log_theta = np.log(random_theta(rng))
     _, grad = gp.lml_and_gradient(log_theta)
     h = 1e-5
@@ -241,7 +275,7 @@ def test_loo_residuals_equal_explicit_refits(seed):
     assert checked == mask.sum()
 
 
-def test_extra_noise_removes_a_candidates_influence():
+def test_noise_var_removes_a_candidates_influence():
     r, z, d, mask = random_problem(50)
     m = int(np.argmax(mask.sum(axis=1)))
     k = np.flatnonzero(mask[m])[mask[m].sum() // 2]
@@ -260,9 +294,11 @@ def test_extra_noise_removes_a_candidates_influence():
     ref, ref_std = without.predict(without.solve(theta), r_star, d_star)
     pulled, _ = with_it.predict(with_it.solve(theta), r_star, d_star)
     assert np.max(np.abs(pulled[s] - ref[s2])) > 0.1  # the outlier does pull the plain fit
-    with_it.extra_noise[s, j] = 1e8
-    sol = with_it.solve(theta)  # the cache key includes extra_noise
-    mean, std = with_it.predict(sol, r_star, d_star)
+    noise = np.zeros_like(r)
+    noise[m, k] = 1e8
+    ignored = with_it.with_noise(noise)
+    sol = ignored.solve(theta)
+    mean, std = ignored.predict(sol, r_star, d_star)
     np.testing.assert_allclose(mean[s], ref[s2], atol=1e-6)
     np.testing.assert_allclose(std[s], ref_std[s2], atol=1e-6)
     assert abs(sol.alpha[s, j]) < 1e-7
@@ -414,12 +450,10 @@ def test_compiled_factorisation_equals_numpy(monkeypatch, seed):
     """The numba kernel and the numpy reference give the same solution, LML and gradient."""
     r, z, d, mask = random_problem(seed)
     theta = np.log([0.7, 1.5, 0.08])
-    monkeypatch.setattr(gp_module, 'USE_COMPILED', False)
-    ref_gp = FrameGP(r, z, d, mask)
+    ref_gp = FrameGP(r, z, d, mask, backend='numpy')
     ref_lml, ref_grad = ref_gp.lml_and_gradient(theta)
     ref = ref_gp.solve(np.exp(theta))
-    monkeypatch.setattr(gp_module, 'USE_COMPILED', True)
-    fast_gp = FrameGP(r, z, d, mask)
+    fast_gp = FrameGP(r, z, d, mask, backend='numba')
     lml, grad = fast_gp.lml_and_gradient(theta)
     fast = fast_gp.solve(np.exp(theta))
     assert lml == pytest.approx(ref_lml, rel=1e-10)
@@ -441,9 +475,19 @@ def test_broken_compiled_kernel_falls_back_to_numpy(monkeypatch):
     """If numba cannot compile or run on a platform, the frame is still solved (numpy)."""
     def broken(a, z):
         raise RuntimeError('no LLVM here')
-    monkeypatch.setattr(gp_module, 'USE_COMPILED', True)
+    monkeypatch.setattr(gp_compiled, 'AVAILABLE', True)
     monkeypatch.setattr(gp_compiled, 'spd_inverse_batched', broken)
     r, z, d, mask = random_problem(1)
-    sol = FrameGP(r, z, d, mask).solve((0.7, 1.5, 0.08))
-    assert np.isfinite(sol.lml)
-    assert gp_module.USE_COMPILED is False
+    gp = FrameGP(r, z, d, mask, backend='numba')
+    ref = FrameGP(r, z, d, mask, backend='numpy').solve((0.7, 1.5, 0.08))
+    sol = gp.solve((0.7, 1.5, 0.08))
+    assert sol.lml == ref.lml
+    assert gp.backend == 'numpy' and 'no LLVM here' in gp.compiled_error
+    assert gp.with_noise(np.zeros_like(r)).backend == 'numpy'  # derived objects keep numpy
+
+
+def test_backend_names():
+    r, z, d, mask = random_problem(2)
+    assert FrameGP(r, z, d, mask).backend == ('numba' if gp_compiled.AVAILABLE else 'numpy')
+    with pytest.raises(ValueError, match='backend'):
+        FrameGP(r, z, d, mask, backend='cuda')

@@ -1,7 +1,8 @@
 # SPDX-License-Identifier: Apache-2.0
 """Unit tests of line extraction (lines.py): the Deming fit and Algorithm 1's critical points.
 
-The Deming slope is checked against references that share no code with ``deming_fit``: the
+The Deming slope (the one function Algorithm 1 uses, from raw sums) is checked against
+references that share no code with ``deming_fit``: the
 maximum-likelihood problem over (alpha, beta, xi_1..xi_n) solved numerically with
 scipy.optimize.least_squares, and principal-axis (eigenvector) regression after rescaling z by
 1/sqrt(lambda). Critical points are checked on a hand-built segment whose every break has one
@@ -21,9 +22,21 @@ KW = dict(variance_ratio=1.0, max_slope=0.7, max_distance_m=0.15, max_gap_m=6.0,
           max_density_jump=8.0)
 
 
-def moments(r, z, ddof=0):
-    c = np.cov(np.stack([r, z]), ddof=ddof)
+def moments(r, z):
+    """Central second moments and means (for the OLS references)."""
+    c = np.cov(np.stack([r, z]), ddof=0)
     return c[0, 0], c[1, 1], c[0, 1], r.mean(), z.mean()
+
+
+def sums(r, z):
+    """The raw sums deming_fit takes: n, sum r, sum z, sum r^2, sum z^2, sum r z."""
+    return len(r), r.sum(), z.sum(), (r * r).sum(), (z * z).sum(), (r * z).sum()
+
+
+def from_moments(s_rr, s_zz, s_rz, mean_r, mean_z):
+    """Raw sums of a one-point-weight problem with the given central moments and means."""
+    return (1.0, mean_r, mean_z, s_rr + mean_r * mean_r, s_zz + mean_z * mean_z,
+            s_rz + mean_r * mean_z)
 
 
 def ml_deming(r, z, lam):
@@ -64,7 +77,7 @@ def test_deming_matches_ml_and_principal_axis(seed, lam):
     rng = np.random.default_rng(seed)
     slope = rng.choice([-2.0, -0.3, 0.1, 0.8, 3.0])
     r, z = noisy_line(rng, 15, slope, 0.2, 0.2 * math.sqrt(lam))
-    alpha, beta = deming_fit(*moments(r, z), lam)
+    alpha, beta = deming_fit(*sums(r, z), lam)
     a_ml, b_ml = ml_deming(r, z, lam)
     assert float(beta) == pytest.approx(b_ml, rel=1e-7, abs=1e-9)
     assert float(alpha) == pytest.approx(a_ml, abs=1e-6)  # = beta error x mean r
@@ -77,7 +90,7 @@ def test_deming_lambda_one_is_orthogonal_regression():
     rng = np.random.default_rng(11)
     for _ in range(20):
         r, z = noisy_line(rng, 30, rng.uniform(-4, 4), 0.3, 0.3)
-        _, beta = deming_fit(*moments(r, z), 1.0)
+        _, beta = deming_fit(*sums(r, z), 1.0)
         # smallest eigenvector of the covariance is the normal (-beta, 1) / norm
         w, v = np.linalg.eigh(np.cov(np.stack([r, z])))
         normal = v[:, 0]
@@ -96,54 +109,54 @@ def test_deming_limits_ols_and_inverse_regression():
     s_rr, s_zz, s_rz, mr, mz = moments(r, z)
     ols = s_rz / s_rr
     inverse = s_zz / s_rz  # regression of r on z, inverted
-    errors = [abs(float(deming_fit(s_rr, s_zz, s_rz, mr, mz, lam)[1]) - ols)
+    errors = [abs(float(deming_fit(*from_moments(s_rr, s_zz, s_rz, mr, mz), lam)[1]) - ols)
               for lam in (1.0, 1e2, 1e4, 1e6, 1e8)]
     assert all(a > b for a, b in zip(errors, errors[1:])), errors
     assert errors[-1] < 1e-7 * abs(ols)
-    _, b_small = deming_fit(s_rr, s_zz, s_rz, mr, mz, 1e-8)
+    _, b_small = deming_fit(*from_moments(s_rr, s_zz, s_rz, mr, mz), 1e-8)
     assert float(b_small) == pytest.approx(inverse, rel=1e-6)
     # Deming lies between OLS and the inverse regression
     for lam in (0.1, 1.0, 10.0):
-        b = float(deming_fit(s_rr, s_zz, s_rz, mr, mz, lam)[1])
+        b = float(deming_fit(*from_moments(s_rr, s_zz, s_rz, mr, mz), lam)[1])
         assert min(ols, inverse) < b < max(ols, inverse)
 
 
 def test_deming_normalisation_swap_and_vectorisation():
     rng = np.random.default_rng(13)
     r, z = noisy_line(rng, 12, -0.7, 0.1, 0.2)
-    a0, b0 = deming_fit(*moments(r, z, ddof=0), 2.0)
-    a1, b1 = deming_fit(*moments(r, z, ddof=1), 2.0)
+    a0, b0 = deming_fit(*sums(r, z), 2.0)
+    a1, b1 = deming_fit(*(3.0 * np.array(sums(r, z))), 2.0)  # every point counted thrice
     assert float(b0) == pytest.approx(float(b1), rel=1e-12)
     assert float(a0) == pytest.approx(float(a1), rel=1e-12)
     # swapping the axes and inverting lambda inverts the slope
-    _, b_swap = deming_fit(*moments(z, r), 0.5)
+    _, b_swap = deming_fit(*sums(z, r), 0.5)
     assert float(b_swap) == pytest.approx(1.0 / float(b0), rel=1e-12)
     # vectorised over many problems at once == one at a time
     probs = [noisy_line(rng, 10, s, 0.1, 0.1) for s in (-3, -0.5, 0.0, 0.4, 2.0)]
-    mom = np.array([moments(*p) for p in probs]).T
+    mom = np.array([sums(*p) for p in probs]).T
     alphas, betas = deming_fit(*mom, 1.5)
     for i, p in enumerate(probs):
-        a, b = deming_fit(*moments(*p), 1.5)
+        a, b = deming_fit(*sums(*p), 1.5)
         assert alphas[i] == pytest.approx(float(a), rel=1e-14)
         assert betas[i] == pytest.approx(float(b), rel=1e-14)
 
 
 def test_deming_degenerate_cases():
     # all points equal: no direction at all -> horizontal through the point
-    alpha, beta = deming_fit(0.0, 0.0, 0.0, 4.0, -1.5, 1.0)
+    alpha, beta = deming_fit(*from_moments(0.0, 0.0, 0.0, 4.0, -1.5), 1.0)
     assert float(beta) == 0.0 and float(alpha) == -1.5
     # exactly horizontal points
-    alpha, beta = deming_fit(2.0, 0.0, 0.0, 4.0, -1.5, 1.0)
+    alpha, beta = deming_fit(*from_moments(2.0, 0.0, 0.0, 4.0, -1.5), 1.0)
     assert float(beta) == 0.0 and float(alpha) == -1.5
     # exactly vertical points (same r): infinite slope, no exception
     with np.errstate(all='raise'):
-        _, beta = deming_fit(0.0, 3.0, 0.0, 4.0, -1.5, 1.0)
+        _, beta = deming_fit(*from_moments(0.0, 3.0, 0.0, 4.0, -1.5), 1.0)
     assert np.isinf(beta)
     # exact collinear points of any slope are recovered exactly, for any lambda
     r = np.array([1.0, 2.0, 4.0, 7.0])
     for slope in (-5.0, -0.25, 0.0, 0.01, 1.0, 12.0):
         for lam in (1e-3, 1.0, 1e3):
-            alpha, beta = deming_fit(*moments(r, 2.0 + slope * r), lam)
+            alpha, beta = deming_fit(*sums(r, 2.0 + slope * r), lam)
             assert float(beta) == pytest.approx(slope, rel=1e-9, abs=1e-12)
             assert float(alpha) == pytest.approx(2.0, abs=1e-9)
 
@@ -155,7 +168,7 @@ def test_deming_beats_ols_on_steep_noisy_lines():
     for _ in range(200):
         r, z = noisy_line(rng, 200, slope, sigma, sigma, 0.0, 2.0)
         s_rr, s_zz, s_rz, mr, mz = moments(r, z)
-        dem_err.append(float(deming_fit(s_rr, s_zz, s_rz, mr, mz, 1.0)[1]) - slope)
+        dem_err.append(float(deming_fit(*sums(r, z), 1.0)[1]) - slope)
         ols_err.append(s_rz / s_rr - slope)
     dem_err, ols_err = np.array(dem_err), np.array(ols_err)
     assert np.mean(np.abs(dem_err)) < 0.7 * np.mean(np.abs(ols_err))
@@ -212,6 +225,10 @@ def test_hand_built_segment_lines_and_critical_points():
     np.testing.assert_array_equal(out.line_count, [5, 3, 3, 1, 4])
     np.testing.assert_array_equal(out.line_r_range,
                                   [[2, 6], [7, 9], [16, 18], [19, 19], [20, 23]])
+    # slope of the current line just before each candidate joins: NaN until it has 2 points
+    np.testing.assert_allclose(
+        out.slope_before[0], [NAN, NAN, NAN, 0.05, 0.05, 0.05, 0.05, NAN, 0.1, 0.1, NAN, 0.1,
+                              0.1, NAN, NAN, -0.2, -0.2], rtol=1e-9, equal_nan=True)
 
 
 @pytest.mark.parametrize('bin_index,relaxed', [

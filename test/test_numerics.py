@@ -23,7 +23,7 @@ from conftest import status_values, wait_for
 
 from gp_ground_segmentation import GroundSegmenter, Hyperparameters, SegmenterParams
 from gp_ground_segmentation.core import segmenter as segmenter_module
-from gp_ground_segmentation.core import gp as gp_module
+from gp_ground_segmentation.core import gp_compiled
 from gp_ground_segmentation.core.gp import FrameGP, length_scale_factors
 from scenes.synthetic import make_scene, simulate_scan
 
@@ -137,7 +137,7 @@ def test_identical_candidates_make_cholesky_fall_back_and_count():
 
 def test_cholesky_jitter_grows_until_success_and_every_retry_is_counted(monkeypatch):
     r, z, mask = nasty_problem()
-    gp = FrameGP(r, z, factors(1.0), mask)
+    gp = FrameGP(r, z, factors(1.0), mask, backend='numpy')  # inject into numpy's path
     real = np.linalg.cholesky
     added = []
 
@@ -147,7 +147,6 @@ def test_cholesky_jitter_grows_until_success_and_every_retry_is_counted(monkeypa
         if len(added) <= 4:
             raise np.linalg.LinAlgError('injected')
         return real(a)
-    monkeypatch.setattr(gp_module, 'USE_COMPILED', False)  # inject into the numpy path
     monkeypatch.setattr(np.linalg, 'cholesky', flaky)
     sol = gp.solve((0.5, 2.0, 0.05))
     assert gp.cholesky_fallbacks == 4 and len(added) == 5
@@ -294,7 +293,9 @@ def _fail_first_cholesky_calls(monkeypatch, count):
             state['left'] -= 1
             raise np.linalg.LinAlgError('injected')
         return real(a)
-    monkeypatch.setattr(gp_module, 'USE_COMPILED', False)  # inject into the numpy path
+    # the compiled kernel (if used) reports every matrix as not PD: numpy's path runs
+    monkeypatch.setattr(gp_compiled, 'spd_inverse_batched',
+                        lambda a, z: (np.zeros(a.shape[0], dtype=bool), None, None))
     monkeypatch.setattr(np.linalg, 'cholesky', flaky)
     return state
 
@@ -431,3 +432,35 @@ def test_finite_coordinates_whose_square_overflows(ramp_points, dtype, big):
     # only the two segments holding a far point lose resolution: the rest of the frame agrees
     base = GroundSegmenter().segment(ramp_points)
     assert np.mean(res.ground_mask[:-2] == base.ground_mask) > 0.9
+
+
+# --------------------------------------------------------------------------------------------
+# A broken compiled kernel: that segmenter falls back to numpy, no other is affected
+# --------------------------------------------------------------------------------------------
+@pytest.mark.skipif(not gp_compiled.AVAILABLE, reason='numba not installed')
+def test_broken_compiled_kernel_makes_that_segmenter_use_numpy(ramp_points, monkeypatch):
+    params = SegmenterParams(optimizer_first_frame_evaluations=3)
+    reference = GroundSegmenter(params, backend='numpy').segment(ramp_points)
+
+    def broken(a, z):
+        raise RuntimeError('no LLVM here')
+    monkeypatch.setattr(gp_compiled, 'spd_inverse_batched', broken)
+    seg = GroundSegmenter(params, backend='numba')
+    res = seg.segment(ramp_points)
+    assert seg.backend == 'numpy'
+    np.testing.assert_array_equal(res.ground_mask, reference.ground_mask)
+    assert GroundSegmenter(params).backend == 'numba'  # a choice per segmenter, not global
+
+
+@pytest.mark.skipif(not gp_compiled.AVAILABLE, reason='numba not installed')
+def test_failed_warm_up_switches_the_segmenter_to_numpy(ramp_points, monkeypatch):
+    def broken():
+        raise RuntimeError('no LLVM here')
+    monkeypatch.setattr(gp_compiled, 'warm_up', broken)
+    seg = GroundSegmenter(backend='auto')
+    with pytest.raises(RuntimeError, match='no LLVM'):
+        seg.warm_up()
+    assert seg.backend == 'numpy'
+    assert seg.segment(ramp_points).ground_mask.any()
+    numpy_seg = GroundSegmenter(backend='numpy')
+    numpy_seg.warm_up()  # nothing to compile: never fails

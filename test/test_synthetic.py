@@ -272,3 +272,85 @@ def test_ground_slope_helper():
     on_ramp = (p[:, 0] > 10.5) & (p[:, 0] < 40)
     assert slope[on_ramp] == pytest.approx(20.0, abs=1e-3)
     assert np.all(slope[np.abs(p[:, 0]) < 7.5] < 1e-6)
+
+
+# ---------------------------------------------------------------------------- randomised families
+
+def _exact_family_scan(family, seed):
+    member = syn.family_scene(family, seed)
+    return member, simulate_scan(member.scene, seed=seed, range_noise_m=0.0, **member.scan_kwargs)
+
+
+@pytest.mark.parametrize('family', syn.FAMILY_NAMES)
+def test_family_scan_shapes_and_exact_truth(family):
+    member, scan = _exact_family_scan(family, 0)
+    n = len(scan.points)
+    assert scan.points.dtype == np.float32 and scan.points.shape == (n, 4)
+    for arr in (scan.is_ground, scan.kind, scan.instance, scan.ring, scan.column, scan.returned):
+        assert arr.shape == (n,)
+    beams = len(scan.elevations_deg)
+    if member.scan_kwargs.get('organized'):
+        assert n == beams * syn.FAMILY_AZIMUTH_STEPS
+        assert np.array_equal(scan.ring, np.repeat(np.arange(beams), syn.FAMILY_AZIMUTH_STEPS))
+        assert 0.05 < np.mean(~scan.returned) < 0.7, 'an organised scan has sky no-returns'
+    else:
+        assert scan.returned.all() and 10_000 < n <= beams * syn.FAMILY_AZIMUTH_STEPS
+    # No-returns are exact zeros, never ground, and the only zero rows.
+    zero = np.all(scan.points == 0, axis=1)
+    assert np.array_equal(zero, ~scan.returned)
+    assert np.array_equal(scan.kind == syn.KIND_NO_RETURN, ~scan.returned)
+    assert not scan.is_ground[~scan.returned].any()
+    assert np.array_equal(scan.is_ground, np.isin(scan.kind, (KIND_TERRAIN, KIND_TERRAIN_STEP)))
+    assert np.array_equal(scan.instance >= 0, scan.returned & ~scan.is_ground)
+    assert 0.3 < scan.is_ground[scan.returned].mean() < 0.98
+    # Exact truth: terrain hits lie on the terrain and obstacle hits in their primitive, in the
+    # world frame (through the mount's tilt).
+    world = scan.to_world(scan.points[:, :3])
+    on = scan.kind == KIND_TERRAIN
+    dz = world[on, 2] - scan.scene.height(world[on, 0], world[on, 1])
+    assert np.max(np.abs(dz)) < 1e-3
+    for i in np.unique(scan.instance[scan.instance >= 0]):
+        sel = scan.instance == i
+        assert scan.scene.obstacles[i].contains(world[sel], 1e-3).all(), (family, i)
+
+
+@pytest.mark.parametrize('family', syn.FAMILY_NAMES)
+def test_family_is_deterministic_per_seed(family):
+    a, b, c = syn.family_scan(family, 1), syn.family_scan(family, 1), syn.family_scan(family, 2)
+    assert np.array_equal(a.points, b.points) and np.array_equal(a.is_ground, b.is_ground)
+    assert a.scene.description == b.scene.description
+    # Another seed, another scene layout (not only other noise): the truth differs.
+    assert a.is_ground.shape != c.is_ground.shape or not np.array_equal(a.is_ground, c.is_ground)
+
+
+def test_family_specifics():
+    with pytest.raises(ValueError, match='unknown'):
+        syn.family_scene('nope', 0)
+    heights = [syn.family_scene('mount_height', s).sensor_height_m for s in range(3)]
+    assert heights == [0.5, 1.5, 2.5]
+    for seed in range(3):
+        member, scan = _exact_family_scan('indoor', seed)
+        assert 0.3 <= member.sensor_height_m <= 0.8
+        floor = scan.points[scan.is_ground, 2]
+        assert np.allclose(floor, -member.sensor_height_m, atol=1e-3)
+        assert np.isin([syn.KIND_WALL, syn.KIND_FURNITURE], scan.kind).all()
+        tilt = syn.family_scene('tilted', seed).scan_kwargs
+        assert 3.0 <= abs(tilt['pitch_deg']) <= 10.0 and abs(tilt['roll_deg']) <= 10.0
+        scan = syn.family_scan('near_person_car', seed)
+        r = np.hypot(scan.points[:, 0], scan.points[:, 1])
+        for kind in (syn.KIND_PERSON, syn.KIND_BOX):
+            assert np.any((scan.kind == kind) & (r < 2.5)), (seed, kind)
+    for beams in (16, 32, 64, 128):
+        scan = syn.family_scan(f'beams{beams}', 0)
+        assert len(np.unique(scan.ring)) == beams
+
+
+def test_tilted_mount_tilts_the_ground_in_the_sensor_frame():
+    member, scan = _exact_family_scan('tilted', 0)
+    p = scan.points[scan.is_ground].astype(float)
+    near = np.hypot(p[:, 0], p[:, 1]) < 4.0  # flat road near the sensor
+    a, *_ = np.linalg.lstsq(np.c_[p[near, 0], p[near, 1], np.ones(near.sum())], p[near, 2],
+                            rcond=None)
+    normal = scan.rotation.T @ np.array([0.0, 0.0, 1.0])  # world up in the sensor frame
+    assert a[:2] == pytest.approx(-normal[:2] / normal[2], abs=0.02)
+    assert np.degrees(np.arctan(np.hypot(*a[:2]))) > 2.9

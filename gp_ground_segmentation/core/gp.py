@@ -1,42 +1,48 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Whole-frame Gaussian process over the ground candidates of all segments (paper section III-IV).
+"""Whole-frame Gaussian process over the ground candidates of all segments (paper sections III-IV).
 
-Kernel (paper eq. 6, Paciorek & Schervish non-stationary squared exponential in 1-D):
+Paper: kernel (eq. 7, Paciorek & Schervish non-stationary squared exponential in 1-D):
 
     k(r_i, r_j) = sigma_f^2 (L_i^2)^(1/4) (L_j^2)^(1/4) ((L_i^2 + L_j^2) / 2)^(-1/2)
                   * exp(-(r_i - r_j)^2 / (L_i^2 + L_j^2)),        L_i = a d_i
 
-Length-scale factor d_i (paper eq. 7-8): d_i = log(1/g_i) / rho_i, g = slope of the candidate's
-line-segment and rho the density-like value. Choices where the paper is silent:
+length-scale factor (eqs. 8 and 12): d_i = log(1/g_i) / rho_i, with g the slope of the
+candidate's line-segment and rho the density-like value, and d_i = log(1/g_d) below the slope
+floor g_d; prediction (eqs. 5 and 13); hyperparameters theta = (sigma_f, a, sigma_n) shared by
+all segments and learned by maximising the whole-frame objective
+J(theta) = sum_m log p(z_m | r_m, theta) (eq. 14).
+
+Ours, where the paper is silent:
 
 * g is clipped to [g_d, g_max] with g_max < 1: g >= 1 (steeper than 45 deg) would give
   log(1/g) <= 0, a non-positive length scale; one-point lines (no slope) count as flat (g_d).
 * rho is the bin's rho~ relative to the typical rho~ at the same range
   (``grid.relative_density``), so that ``a`` means the same near and far and for a 16-beam and a
   128-beam sensor; rho~ > 0 for every bin that holds a candidate, so d is finite.
-* the paper's flat branch (g < g_d) is written without 1/rho, which makes L jump at g = g_d;
-  ``density_in_flat_branch=True`` keeps 1/rho there too (continuous in g). The default follows
-  the paper: it scored slightly higher recall on every sloped scene and the real frame
-  (benchmarks/sweep_params.py).
+* ``density_in_flat_branch=True`` also divides the flat branch by rho (continuous in g at g_d);
+  the default (False) is the paper's eq. 12.
 * d is clipped to [d_min, d_max] so that no candidate gets a vanishing or unbounded length scale;
   with d fixed per frame, L = a d exactly and the prefactor of k is independent of ``a``.
+* The prior mean is a constant m0, the median height of the training points (the paper's
+  eq. 6 uses a zero mean), so sigma_f describes deviations of the ground from a level plane at m0.
+* Each training point may carry its own extra noise variance on top of sigma_n^2 (the anchor
+  at r = 0, rejected outliers: see ``additions``).
+* theta is learned with L-BFGS-B on log theta within bounds, using the analytic gradient
 
-Hyperparameters theta = (sigma_f, a, sigma_n) are shared by all segments and learned by
-maximising J(theta) = sum_m log p(z_m | r_m, theta) (paper eq. 11) with L-BFGS-B on log theta
-within bounds, using the analytic gradient
+      dJ/dtheta = 1/2 sum_m tr((alpha alpha^T - A_m^-1) dA_m/dtheta),   A_m = K_m + diag(noise),
 
-    dJ/dtheta = 1/2 sum_m tr((alpha alpha^T - A_m^-1) dA_m/dtheta),   A_m = K_m + sigma_n^2 I.
+  under a cap on objective evaluations.
 
 All segments are solved together as one padded (M, n, n) batch: a compiled (numba) Cholesky +
-triangular-inverse kernel (gp_compiled.py) when available, else numpy's stacked Cholesky and
-inverse, which also handles the jittered retries; padded rows are identity rows with z = 0,
+triangular-inverse kernel (gp_compiled.py) with backend 'numba', numpy's stacked Cholesky and
+inverse with backend 'numpy' and as the fallback (non-PD matrices: jittered retries; a numba
+failure: numpy for the rest of that object's life); padded rows are identity rows with z = 0,
 which add nothing to J or its gradient.
-The GP prior mean is a constant m0 (the frame's median candidate height), so sigma_f describes
-deviations of the ground from a level plane at m0.
 """
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 
 import numpy as np
@@ -52,19 +58,18 @@ LOG_2PI = float(np.log(2.0 * np.pi))
 _NUMERICAL_ERRORS = (ValueError, ArithmeticError)
 
 
-# Factorise with the compiled kernel when numba is there (gp_compiled.py); the numpy path is
-# the reference, the fallback for non-PD matrices (jitter) and what tests use to inject failures.
-USE_COMPILED = gp_compiled.AVAILABLE
+BACKENDS = ('auto', 'numba', 'numpy')
 
 
-def _compiled_inverse(a, z):
-    """The numba kernel; if it cannot run on this platform, switch to numpy for good."""
-    global USE_COMPILED
-    try:
-        return gp_compiled.spd_inverse_batched(a, z)
-    except Exception:  # noqa: BLE001 - numba compile/runtime failure: numpy is the reference
-        USE_COMPILED = False
-        return np.zeros(a.shape[0], dtype=bool), None, None
+def resolve_backend(backend: str) -> str:
+    """'auto' -> 'numba' when numba imports, else 'numpy'; raise ValueError on other names."""
+    if backend not in BACKENDS:
+        raise ValueError(f"backend: expected one of {', '.join(BACKENDS)}, got {backend!r}")
+    if backend == 'auto':
+        return 'numba' if gp_compiled.AVAILABLE else 'numpy'
+    if backend == 'numba' and not gp_compiled.AVAILABLE:
+        raise ValueError("backend 'numba' requested but numba is not installed")
+    return backend
 
 
 class _BudgetExhausted(Exception):
@@ -104,22 +109,57 @@ class GPSolution:
     kernel: np.ndarray  # (S, n, n) K at theta (padded slots 0)
 
 
-class FrameGP:
-    """Training data of one frame, padded to (S, n) over the segments that have candidates."""
+@dataclass(frozen=True)
+class GroundAnchor:
+    """One extra training point at r = 0 in chosen segments: the ground under the vehicle."""
 
-    def __init__(self, r, z, d, mask, mean=None):
-        """r, z, d, mask: (M, N) candidate arrays; mask marks training candidates."""
+    height_m: float  # z of the point (m)
+    noise_var: float  # its noise variance on top of sigma_n^2 (m^2)
+    segments: np.ndarray  # (M,) bool: segments that get it
+    length_factor: np.ndarray  # (M,) d of the point in each segment
+
+
+class FrameGP:
+    """Training data of one frame, padded to (S, n) over the segments that have training points.
+
+    Immutable after construction: a different noise assignment is a new object
+    (:meth:`with_noise`), so a solution cached for one theta can never belong to other data.
+    """
+
+    def __init__(self, r, z, d, mask, noise_var=None, anchor: GroundAnchor | None = None,
+                 mean=None, backend='auto'):
+        """r, z, d, mask, noise_var: (M, N) candidate arrays; mask marks training candidates.
+
+        ``noise_var`` (m^2, default 0) is added to sigma_n^2 on each candidate's diagonal.
+        ``anchor`` adds its point before the first candidate of every segment it names.
+        The prior mean is ``mean``, by default the median height of all training points (the
+        anchor counted once per segment that has it), so sigma_f describes deviations of the
+        ground from a level plane at that height.
+        ``backend``: 'numba' (compiled factorisation), 'numpy', or 'auto' (numba if it imports).
+        """
         mask = np.asarray(mask, dtype=bool)
+        noise_var = np.zeros(mask.shape) if noise_var is None else noise_var
+        self.anchor = anchor
+        if anchor is not None:  # the anchor becomes column 0 of the padded input
+            m_count = mask.shape[0]
+            r = np.concatenate([np.zeros((m_count, 1)), r], axis=1)
+            z = np.concatenate([np.full((m_count, 1), anchor.height_m), z], axis=1)
+            d = np.concatenate([np.asarray(anchor.length_factor, float)[:, None], d], axis=1)
+            mask = np.concatenate([np.asarray(anchor.segments, bool)[:, None], mask], axis=1)
+            noise_var = np.concatenate([np.full((m_count, 1), anchor.noise_var), noise_var],
+                                       axis=1)
+        self.shape = (mask.shape[0], mask.shape[1] - (anchor is not None))  # (M, N) of the grid
         counts = mask.sum(axis=1)
         self.segments = np.flatnonzero(counts > 0)  # rows of (M, N) that enter the batch
         n_max = int(counts.max()) if counts.size else 0
         self.n_max = n_max
-        s_count = self.segments.size
         sub = mask[self.segments]
-        # stable order: training candidates of each segment first, in bin order
+        # stable order: training points of each segment first (the anchor first of all)
         order = np.argsort(~sub, axis=1, kind='stable')[:, :n_max]
-        self.columns = order  # (S, n) bin index of every padded slot
         self.valid = np.take_along_axis(sub, order, axis=1)
+        # (S, n) grid bin of every padded slot; -1 for the anchor
+        self.bins = order - 1 if anchor is not None else order
+        self.is_anchor = self.valid & (self.bins < 0)
         take = (lambda a: np.take_along_axis(np.asarray(a, dtype=np.float64)[self.segments],
                                              order, axis=1))
         self.mean = float(np.median(np.asarray(z)[mask])) if mean is None and mask.any() else (
@@ -128,18 +168,41 @@ class FrameGP:
         self.r = np.where(valid, take(r), 0.0)
         self.z = np.where(valid, take(z) - self.mean, 0.0)
         self.d = np.where(valid, take(d), 1.0)
+        self.noise_var = np.where(valid, take(noise_var), 0.0)
         self.num_points = int(valid.sum())
         pair = valid[:, :, None] & valid[:, None, :]
-        self.pair = pair
         di, dj = self.d[:, :, None], self.d[:, None, :]
         sd = di * di + dj * dj
         self.prefactor = np.where(pair, np.sqrt(2.0 * di * dj / sd), 0.0)
         diff = self.r[:, :, None] - self.r[:, None, :]
         self.q = np.where(pair, diff * diff / sd, 0.0)  # (r_i - r_j)^2 / (d_i^2 + d_j^2)
-        self.eye = np.broadcast_to(np.eye(n_max, dtype=bool), (s_count, n_max, n_max))
-        self.cholesky_fallbacks = 0
-        self.extra_noise = np.zeros_like(self.r)
+        self.backend = resolve_backend(backend)
+        self.compiled_error = None  # why the numba kernel failed, if it did (then numpy)
+        self.cholesky_fallbacks = 0  # jittered retries of this object and those it came from
         self._cache = None
+
+    def with_noise(self, noise_var) -> 'FrameGP':
+        """The same data with another per-candidate noise variance (M, N) (m^2).
+
+        Shares the geometry (kernel distances, prefactors) with this object; the anchor keeps
+        its own noise. Cheap: no re-padding, no new distance matrices.
+        """
+        other = copy.copy(self)
+        slots = np.take_along_axis(np.asarray(noise_var, dtype=np.float64)[self.segments],
+                                   np.maximum(self.bins, 0), axis=1)
+        anchor_var = self.anchor.noise_var if self.anchor is not None else 0.0
+        other.noise_var = np.where(self.valid, np.where(self.is_anchor, anchor_var, slots), 0.0)
+        other._cache = None  # cholesky_fallbacks carries on: it counts the whole chain
+        return other
+
+    def to_grid(self, slot_values, fill) -> np.ndarray:
+        """(S, n) values of the training slots -> (M, N) over the grid's bins (anchor dropped)."""
+        slot_values = np.asarray(slot_values)
+        out = np.full(self.shape, fill, dtype=slot_values.dtype)
+        keep = self.valid & ~self.is_anchor
+        out[np.broadcast_to(self.segments[:, None], keep.shape)[keep], self.bins[keep]] = (
+            slot_values[keep])
+        return out
 
     # -- core linear algebra ---------------------------------------------------------------
     def kernel(self, theta):
@@ -154,26 +217,29 @@ class FrameGP:
     def solve(self, theta) -> GPSolution:
         """Factorise A at theta, adding growing diagonal jitter if Cholesky fails.
 
-        ``self.extra_noise`` (S, n) adds a per-candidate noise variance (m^2): the segmenter
-        sets it to a large value on candidates it has rejected as outliers, which removes their
-        pull on the fit without re-padding the batch.
+        The diagonal of A is sigma_n^2 plus each point's ``noise_var``; the data are fixed at
+        construction, so the cached solution is keyed on theta alone.
         """
         theta = np.asarray(theta, dtype=np.float64)
-        key = (theta.tobytes(), self.extra_noise.tobytes())
+        key = theta.tobytes()
         if self._cache is not None and self._cache[0] == key:
             return self._cache[1]  # L-BFGS-B re-evaluates its start and end points
         k = self.kernel(theta)
         # A = K + noise on the diagonal; padded slots get 1 there (identity rows, K is 0 there)
-        diagonal = np.where(self.valid, theta[2] ** 2 + self.extra_noise, 1.0)
+        diagonal = np.where(self.valid, theta[2] ** 2 + self.noise_var, 1.0)
         a = k.copy()
         a_diag = a.reshape(a.shape[0], -1)[:, ::a.shape[-1] + 1]  # a view of every diagonal
         a_diag += diagonal
         factorised = None
-        if USE_COMPILED:
+        if self.backend == 'numba':
             a_inv = a.copy()  # the kernel inverts in place; `a` stays intact for the fallback
-            ok, logdets, alpha = _compiled_inverse(a_inv, self.z)
-            if ok.all():
-                factorised = a_inv, float(logdets.sum()), alpha, 0.0
+            try:
+                ok, logdets, alpha = gp_compiled.spd_inverse_batched(a_inv, self.z)
+            except Exception as exc:  # noqa: BLE001 - numba compile/runtime failure
+                self.backend, self.compiled_error = 'numpy', str(exc)  # numpy from now on
+            else:
+                if ok.all():
+                    factorised = a_inv, float(logdets.sum()), alpha, 0.0
         if factorised is None:
             factorised = self._numpy_factorise(a, a_diag, theta)
         a_inv, logdet, alpha, jitter = factorised

@@ -10,10 +10,12 @@ is its lowest point, kept as (r, z). Everything is vectorised with ``np.minimum.
 Density-like value rho~ (paper eq. 3): each bin is cut into j vertical slices from its z_min to
 its z_max, rho_i = (points in slice i) / (slice area) and rho~ = mean_i rho_i. All slices of a
 bin share the bin's horizontal (sector) area A, so the mean has the closed form
-rho~ = n_bin / (j * A)  [points per m^2 per slice]: a bin with many points stacked above its
-lowest point (an obstacle on or beside the ground) gets a high rho~, which is what the paper
-asks of it ("a higher density-like value to the points ... with an obstacle in their
-proximity"). We compute that closed form directly instead of materialising the slices.
+rho~ = n_bin / (j * A): a bin with many points stacked above its lowest point (an obstacle on
+or beside the ground) gets a high rho~, which is what the paper asks of it ("a higher
+density-like value to the points ... with an obstacle in their proximity"). We compute
+rho~ = n_bin / A [points per m^2]: the constant 1/j changes no result -- the segmenter uses
+rho~ only through ratios (the density-jump test of Algorithm 1, ``relative_density``) -- so
+there is no j parameter.
 
 Below-ground reflection noise (the shared SemanticKITTI frame has points down to z = -27 m)
 would make such a point the "lowest point" of its bin. The grid keeps the plain lowest point, as
@@ -49,8 +51,7 @@ class RadialGrid:
     candidate_index: np.ndarray  # (M, N) index of the bin's lowest point, -1 if empty
     candidate_r: np.ndarray  # (M, N) r of the lowest point (m), NaN if empty
     candidate_z: np.ndarray  # (M, N) z of the lowest point (m), NaN if empty
-    bin_z_max: np.ndarray  # (M, N) highest z in the bin (m), NaN if empty
-    density: np.ndarray  # (M, N) rho~ (points / m^2 / slice), 0 if empty
+    density: np.ndarray  # (M, N) rho~ (points / m^2), 0 if empty
 
     @property
     def has_candidate(self) -> np.ndarray:
@@ -73,7 +74,7 @@ def segment_of(x: np.ndarray, y: np.ndarray, num_segments: int) -> np.ndarray:
 
 
 def build_grid(x: np.ndarray, y: np.ndarray, z: np.ndarray, num_segments: int,
-               num_bins: int, density_slices: int = 4) -> RadialGrid:
+               num_bins: int) -> RadialGrid:
     """Bin valid points (P,) x, y, z into the radial grid and pick the lowest point of every bin.
 
     The coordinates must be finite (only valid points), float32 or float64. Per segment the
@@ -114,9 +115,7 @@ def build_grid(x: np.ndarray, y: np.ndarray, z: np.ndarray, num_segments: int,
     size = m_count * n_count
     count = np.bincount(key, minlength=size)
     z_min = np.full(size, np.inf, dtype=z.dtype)
-    z_max = np.full(size, -np.inf, dtype=z.dtype)
     np.minimum.at(z_min, key, z)
-    np.maximum.at(z_max, key, z)
 
     candidate_index = np.full(size, -1, dtype=np.intp)
     lowest = np.flatnonzero(z == z_min[key])
@@ -127,21 +126,20 @@ def build_grid(x: np.ndarray, y: np.ndarray, z: np.ndarray, num_segments: int,
     cand_z = np.full(size, np.nan)
     cand_r[occupied] = r[candidate_index[occupied]]
     cand_z[occupied] = z[candidate_index[occupied]]
-    z_max = np.where(occupied, z_max, np.nan)
 
-    # rho~ = n / (j * A): mean over j slices of count/area, all slices sharing the sector area A.
+    # rho~ = n / A: see the module docstring for the dropped 1/j.
     k = np.arange(n_count)
     inner = r_min[:, None] + k[None, :] * width[:, None]
     outer = inner + width[:, None]
     # (dtheta / 2)(ro^2 - ri^2), factored so absurdly far bins give inf, not inf - inf
     sector_area = (np.pi / m_count) * width[:, None] * (outer + inner)
-    density = count.reshape(m_count, n_count) / (density_slices * sector_area)
+    density = count.reshape(m_count, n_count) / sector_area
 
     shape = (m_count, n_count)
     return RadialGrid(m_count, n_count, r, seg, bins, fraction, r_min, width,
                       count.reshape(shape),
                       candidate_index.reshape(shape), cand_r.reshape(shape),
-                      cand_z.reshape(shape), z_max.reshape(shape), density)
+                      cand_z.reshape(shape), density)
 
 
 def relative_density(density: np.ndarray, candidate_r: np.ndarray, mask: np.ndarray,

@@ -1,5 +1,5 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Line extraction over the ground candidates of every segment (paper Algorithm 1).
+"""Line extraction over the ground candidates of every segment: the paper's Algorithm 1, only.
 
 Fit: errors-in-variables (Deming) maximum-likelihood line with variance ratio
 lambda = var(z error) / var(r error), closed form from the second moments:
@@ -8,8 +8,8 @@ lambda = var(z error) / var(r error), closed form from the second moments:
     alpha = mean_z - beta * mean_r
 
 (lambda = 1 is orthogonal regression; lambda -> infinity tends to OLS of z on r.) Unlike OLS it
-does not flatten steep noisy lines, which matters on ramps where both r and z of a candidate
-carry error.
+is not biased flat by noise in r (test_lines.py shows this on synthetic lines); on the shared
+frames and scenes no benchmark shows a measurable effect of Deming over OLS on the labels.
 
 Growing (how Algorithm 1 is read here): candidates are visited in order of r. The current
 line of a segment accumulates its candidates' moments; the next candidate is a *critical point*
@@ -24,19 +24,10 @@ line of a segment accumulates its candidates' moments; the next candidate is a *
 All segments advance in lock-step (one numpy step per bin index, vectorised over the M
 segments), so the cost is N small vector operations, not M*N Python iterations.
 
-Elevated plateaus. A critical point reached by a steep step *up* (chord slope > zeta_b and rise
-> ``step_up_m``, higher than any curb) from the previous candidate is where the ground meets an
-obstacle; the candidates that follow are the obstacle's lowest points (a car roof whose ground
-is occluded) until the sequence comes back down to within ``step_up_m`` of the ground level
-before the step (extrapolated along the slope of the line that ended there), or drops by more
-than ``step_up_m`` from one candidate to the next, or jumps a radial gap > zeta_m (the far edge
-of the obstacle or its occlusion shadow: whatever is seen beyond it, a rising ramp included, is
-taken as ground again). Such candidates are flagged
-``elevated`` and do not train the GP.
-
 Output per candidate: its line id (unique in the frame), whether it starts a line after a
-critical point, and the slope g = |beta| of its final line. One-point lines have no slope: they
-get NaN, which the GP treats as flat (g_d); a line steeper than zeta_b is flagged non-ground.
+critical point, the slope g = |beta| of its final line, and the signed slope of its line just
+before it joined (what ``additions.elevated_plateaus`` extrapolates). One-point lines have no
+slope: they get NaN, which the GP treats as flat (g_d).
 """
 
 from __future__ import annotations
@@ -57,41 +48,24 @@ class LineSegments:
     line_slope: np.ndarray  # (L,) signed beta of every line (NaN for one-point lines)
     line_count: np.ndarray  # (L,) candidates per line
     line_r_range: np.ndarray  # (L, 2) first and last candidate r of every line (m)
-    elevated: np.ndarray  # (M, N) bool: candidate lies on a plateau entered by a steep step up
+    slope_before: np.ndarray  # (M, N) signed beta of the current line (>= 2 points) just
+    #                           before the candidate was visited; NaN otherwise
 
 
-def deming_fit(s_rr, s_zz, s_rz, mean_r, mean_z, variance_ratio):
-    """Deming (errors-in-variables ML) line from central second moments; vectorised.
+def deming_fit(n, s_r, s_z, s_rr, s_zz, s_rz, variance_ratio):
+    """Deming (errors-in-variables ML) line from raw sums, vectorised over lines.
 
-    ``s_rr, s_zz, s_rz`` are the (co)variances of r and z (any normalisation, the same for all
-    three). Returns ``(alpha, beta)``. Where s_rz == 0 the line is horizontal if the spread is
-    mostly along r, else vertical (beta = +-inf).
-    """
-    s_rr, s_zz, s_rz = np.broadcast_arrays(
-        *(np.asarray(v, dtype=np.float64) for v in (s_rr, s_zz, s_rz)))
-    lam = float(variance_ratio)
-    diff = s_zz - lam * s_rr
-    with np.errstate(divide='ignore', invalid='ignore'):
-        beta = (diff + np.sqrt(diff * diff + 4.0 * lam * s_rz * s_rz)) / (2.0 * s_rz)
-    degenerate = s_rz == 0
-    beta = np.where(degenerate, np.where(diff > 0, np.inf, 0.0), beta)
-    with np.errstate(invalid='ignore'):
-        alpha = mean_z - beta * mean_r
-    return alpha, beta
-
-
-def _fit_from_sums(n, sr, sz, srr, szz, srz, variance_ratio):
-    """Deming fit from raw sums (n, Sr, Sz, Srr, Szz, Srz), vectorised over lines.
-
-    The same closed form as :func:`deming_fit`, inlined without its argument checks because
-    it runs twice per bin inside the line-growing loop.
+    ``n, s_r, s_z, s_rr, s_zz, s_rz`` are the count and the sums of r, z, r^2, z^2 and r*z
+    (take them about a nearby origin: the central moments are differences of these sums).
+    Returns ``(alpha, beta)``. Where the covariance of r and z is 0 the line is horizontal if
+    the spread is mostly along r, else vertical (beta = +-inf); lines with n = 0 give NaN.
     """
     with np.errstate(divide='ignore', invalid='ignore'):
-        mean_r = sr / n
-        mean_z = sz / n
-        cov_rr = np.maximum(srr / n - mean_r * mean_r, 0.0)
-        cov_zz = np.maximum(szz / n - mean_z * mean_z, 0.0)
-        cov_rz = srz / n - mean_r * mean_z
+        mean_r = s_r / n
+        mean_z = s_z / n
+        cov_rr = np.maximum(s_rr / n - mean_r * mean_r, 0.0)
+        cov_zz = np.maximum(s_zz / n - mean_z * mean_z, 0.0)
+        cov_rz = s_rz / n - mean_r * mean_z
         diff = cov_zz - variance_ratio * cov_rr
         beta = (diff + np.sqrt(diff * diff + 4.0 * variance_ratio * cov_rz * cov_rz)) / (
             2.0 * cov_rz)
@@ -100,37 +74,36 @@ def _fit_from_sums(n, sr, sz, srr, szz, srz, variance_ratio):
     return alpha, beta
 
 
-def extract_lines(cand_r: np.ndarray, cand_z: np.ndarray, density: np.ndarray, *,
-                  variance_ratio: float, max_slope: float, max_distance_m: float,
-                  max_gap_m: float, max_density_jump: float,
-                  step_up_m: float = 0.3) -> LineSegments:
-    """Grow line-segments over the candidates (M, N) of every segment; see module docstring.
+def relative_to_first(cand_r: np.ndarray, cand_z: np.ndarray):
+    """Candidates (M, N) relative to each segment's first one: (present, r - r0, z - z0, r0, z0).
 
-    Sums are taken about each segment's first candidate r/z to keep the moment arithmetic
-    well conditioned far from the sensor.
+    Moments taken about a nearby origin keep the line arithmetic well conditioned far from the
+    sensor; segments without a candidate get the origin (0, 0).
     """
-    m_count, n_count = cand_r.shape
     present = np.isfinite(cand_r) & np.isfinite(cand_z)
-    rows = np.arange(m_count)
+    rows = np.arange(cand_r.shape[0])
     first = np.argmax(present, axis=1)
     r0 = np.where(present.any(axis=1), cand_r[rows, first], 0.0)
     z0 = np.where(present.any(axis=1), cand_z[rows, first], 0.0)
-    rr = cand_r - r0[:, None]
-    zz = cand_z - z0[:, None]
+    return present, cand_r - r0[:, None], cand_z - z0[:, None], r0, z0
+
+
+def extract_lines(cand_r: np.ndarray, cand_z: np.ndarray, density: np.ndarray, *,
+                  variance_ratio: float, max_slope: float, max_distance_m: float,
+                  max_gap_m: float, max_density_jump: float) -> LineSegments:
+    """Grow line-segments over the candidates (M, N) of every segment; see module docstring."""
+    m_count, n_count = cand_r.shape
+    rows = np.arange(m_count)
+    present, rr, zz, r0, z0 = relative_to_first(cand_r, cand_z)
 
     # moments (1, r, z, r^2, z^2, r z) of every candidate, 0 where there is none
     rr0, zz0 = np.where(present, rr, 0.0), np.where(present, zz, 0.0)
     moments = np.stack([present.astype(np.float64), rr0, zz0, rr0 * rr0, zz0 * zz0, rr0 * zz0])
     sums = np.zeros((6, m_count))  # n, Sr, Sz, Srr, Szz, Srz of each segment's current line
     last_r = np.full(m_count, np.nan)
-    last_z = np.full(m_count, np.nan)
     last_rho = np.full(m_count, np.nan)
     current_line = np.full(m_count, -1, dtype=np.intp)
-    elevated_now = np.zeros(m_count, dtype=bool)
-    base_r = np.zeros(m_count)  # ground r, z and slope just before the step up
-    base_z = np.zeros(m_count)
-    base_slope = np.zeros(m_count)
-    elevated = np.zeros((m_count, n_count), dtype=bool)
+    slope_before = np.full((m_count, n_count), np.nan)
     next_line = 0
     line_id = np.full((m_count, n_count), -1, dtype=np.intp)
     is_critical = np.zeros((m_count, n_count), dtype=bool)
@@ -144,33 +117,17 @@ def extract_lines(cand_r: np.ndarray, cand_z: np.ndarray, density: np.ndarray, *
             r, z, rho = rr[:, k], zz[:, k], density[:, k]
             n = sums[0]
             started = has & (n > 0)
-            dr, rise = r - last_r, z - last_z
-            gap = dr > max_gap_m
+            gap = r - last_r > max_gap_m
             ratio = rho / last_rho
             jump = (ratio > high_density) | (ratio < low_density)
-            alpha, beta = _fit_from_sums(*sums, variance_ratio)
+            alpha, beta = deming_fit(*sums, variance_ratio)
+            slope_before[:, k] = np.where(has & (n >= 2), beta, np.nan)
             far = (n >= 2) & (np.abs(z - alpha - beta * r) / np.sqrt(1.0 + beta * beta)
                               > max_distance_m)
             # slope of the line if this candidate joins it (two-point chord for one-point lines)
-            _, beta_new = _fit_from_sums(*(sums + moments[:, :, k]), variance_ratio)
+            _, beta_new = deming_fit(*(sums + moments[:, :, k]), variance_ratio)
             steep = np.abs(beta_new) > max_slope
             critical = started & (gap | jump | far | steep)
-
-            chord = rise / np.maximum(dr, 1e-6)
-            step_up = started & (rise > step_up_m) & (chord > max_slope)
-            enter = step_up & ~elevated_now
-            if enter.any():
-                line_slope = np.where((n >= 2) & np.isfinite(beta), beta, 0.0)
-                base_r = np.where(enter, last_r, base_r)
-                base_z = np.where(enter, last_z, base_z)
-                base_slope = np.where(enter, line_slope, base_slope)
-            if elevated_now.any():
-                back_down = z <= base_z + base_slope * (r - base_r) + step_up_m
-                leave = has & elevated_now & ((rise < -step_up_m) | back_down | gap)
-                elevated_now = (elevated_now | enter) & ~leave
-            else:
-                elevated_now = enter
-            elevated[:, k] = has & elevated_now
 
             new_line = has & ~(n > 0) | critical
             n_new = int(np.count_nonzero(new_line))
@@ -180,7 +137,6 @@ def extract_lines(cand_r: np.ndarray, cand_z: np.ndarray, density: np.ndarray, *
             line_id[has, k] = current_line[has]
             is_critical[:, k] = critical
             last_r = np.where(has, r, last_r)
-            last_z = np.where(has, z, last_z)
             last_rho = np.where(has, rho, last_rho)
 
     # Final fit of every line from its members (bincount over line ids).
@@ -192,7 +148,7 @@ def extract_lines(cand_r: np.ndarray, cand_z: np.ndarray, density: np.ndarray, *
     count = np.bincount(ids, minlength=num_lines).astype(np.float64)
     line_sums = [count] + [np.bincount(ids, weights=w, minlength=num_lines)
                            for w in (r_rel, z_rel, r_rel * r_rel, z_rel * z_rel, r_rel * z_rel)]
-    alpha_rel, beta = _fit_from_sums(*line_sums, variance_ratio)
+    alpha_rel, beta = deming_fit(*line_sums, variance_ratio)
     beta = np.where(count >= 2, beta, np.nan)
     line_seg = np.zeros(num_lines, dtype=np.intp)
     line_seg[ids] = seg_of
@@ -205,4 +161,4 @@ def extract_lines(cand_r: np.ndarray, cand_z: np.ndarray, density: np.ndarray, *
     slope = np.full((m_count, n_count), np.nan)
     slope[present] = np.abs(beta[ids])
     return LineSegments(line_id, is_critical, slope, intercept, beta, count.astype(np.intp),
-                        np.stack([r_lo, r_hi], axis=1), elevated)
+                        np.stack([r_lo, r_hi], axis=1), slope_before)

@@ -4,7 +4,8 @@
 Each field carries ``metadata`` with a human description (units included), and a numeric range
 (``min``/``max``, inclusive) so that the ROS node can build ``ParameterDescriptor`` objects and
 validate ``ros2 param set`` without repeating any of it. ``SegmenterParams.validate()`` checks
-the ranges and the cross-field rules; it raises ``ValueError`` naming the offending field.
+the ranges (:func:`value_problem`, shared with the node) and the cross-field rules; it raises
+``ValueError`` naming the offending field.
 """
 
 from __future__ import annotations
@@ -12,6 +13,40 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass, field
+
+
+TYPE_NAMES = {'float': 'a double (write it with a decimal point, e.g. 80.0)',
+              'int': 'an integer (no decimal point)', 'bool': 'a bool (true/false)'}
+_SHOWN_TYPES = {'bool': 'bool', 'int': 'integer', 'float': 'double'}
+
+
+def kind_of(value) -> str | None:
+    """'bool', 'int', 'float' (bool before int: True is an int in Python), or None."""
+    for kind, python_type in (('bool', bool), ('int', int), ('float', float)):
+        if isinstance(value, python_type):
+            return kind
+    return None
+
+
+def value_problem(value, kind: str, low=None, high=None, *, int_as_float=False) -> str | None:
+    """What is wrong with ``value`` for a parameter of type ``kind`` ('float', 'int' or 'bool')
+    and inclusive range [low, high]; None if nothing. The one check behind
+    ``SegmenterParams.validate`` and the node's parameters (``ros.config``).
+
+    ``int_as_float`` accepts an int for a float (Python callers); ROS parameter files and
+    ``ros2 param set`` do not (rclpy types are strict).
+    """
+    got = kind_of(value)
+    if got != kind and not (int_as_float and kind == 'float' and got == 'int'):
+        shown = _SHOWN_TYPES[got] if got else type(value).__name__
+        return f'expected {TYPE_NAMES[kind]}, got {shown} {value!r}'
+    if kind == 'bool':
+        return None
+    if not math.isfinite(value):
+        return f'must be finite, got {value!r}'
+    if (low is not None and value < low) or (high is not None and value > high):
+        return f'{value!r} is outside [{low}, {high}]'
+    return None
 
 
 def _param(default, description: str, low=None, high=None):
@@ -32,9 +67,6 @@ class SegmenterParams:
     num_bins: int = _param(
         24, 'N: radial bins per segment, spread evenly between that segment\'s own r_min and '
         'r_max (the paper\'s "divided unevenly" grid)', 4, 512)
-    density_slices: int = _param(
-        4, 'j: vertical slices per bin used for the density-like value rho~ (count/area averaged '
-        'over the slices)', 1, 64)
     noise_spike_m: float = _param(
         1.0, 'a ground candidate whose leave-one-out GP residual is below minus this (m) is '
         'below-ground reflection noise: it stops training the GP', 0.05, 100.0)
@@ -49,6 +81,9 @@ class SegmenterParams:
     line_max_distance_m: float = _param(
         0.15, 'delta: perpendicular distance (m) from a new candidate to the current line above '
         'which the candidate is a critical point', 0.005, 10.0)
+    use_elevated_plateaus: bool = _param(
+        True, 'ours, not the paper\'s: candidates on an elevated plateau (see plateau_step_m) '
+        'do not train the GP; false trains on them')
     plateau_step_m: float = _param(
         0.3, 'a steep step up higher than this (m) between successive candidates starts an '
         'elevated plateau (an obstacle top whose ground is occluded), which does not train the '
@@ -68,7 +103,7 @@ class SegmenterParams:
         0.9, 'slopes are clipped to this (< 1) so log(1/g) stays positive', 0.05, 0.999)
     density_in_flat_branch: bool = _param(
         False, 'also divide the flat-branch length scale log(1/g_d) by rho~ (continuous in g at '
-        'g_d); False is the paper\'s formula, which scored slightly higher recall in '
+        'g_d); False is the paper\'s formula, which scored higher recall on most scenes in '
         'benchmarks/sweep_params.py')
     min_length_factor: float = _param(
         0.05, 'lower clip of the length-scale factor d_i = log(1/g_i)/rho_i (dimensionless; '
@@ -96,11 +131,18 @@ class SegmenterParams:
         'frame (a trust region: one odd frame cannot throw theta to its bounds)', 1.01, 1e6)
     optimizer_first_frame_evaluations: int = _param(
         40, 'the same cap for the first frame (cold start)', 0, 10000)
+    use_outlier_rejection: bool = _param(
+        True, 'ours, not the paper\'s: candidates whose leave-one-out GP residual is above '
+        'outlier_residual_m or below -noise_spike_m stop training the GP; false keeps them all')
     outlier_residual_m: float = _param(
         0.8, 'a candidate whose leave-one-out GP residual is above this (m) is an obstacle top, '
         'not ground: it stops training the GP (checked before and after learning theta)',
         0.01, 100.0)
 
+    use_anchor: bool = _param(
+        True, 'ours, not the paper\'s: every segment\'s GP gets a shared pseudo-candidate at '
+        'r = 0, the ground under the vehicle (median of the first lines\' intercepts); false '
+        'leaves segments independent')
     anchor_std_m: float = _param(
         0.3, 'noise std (m) of the shared pseudo-candidate at r = 0 that tells every segment '
         'the height of the ground under the vehicle', 0.01, 100.0)
@@ -142,22 +184,11 @@ class SegmenterParams:
     def validate(self) -> 'SegmenterParams':
         """Check every range and cross-field rule; raise ValueError naming the field."""
         for f in dataclasses.fields(self):
-            value = getattr(self, f.name)
-            low, high = f.metadata.get('min'), f.metadata.get('max')
-            if isinstance(f.default, bool):
-                if not isinstance(value, bool):
-                    raise ValueError(f'{f.name}: expected a bool, got {value!r}')
-                continue
-            if isinstance(f.default, int) and (isinstance(value, bool)
-                                               or not isinstance(value, int)):
-                raise ValueError(f'{f.name}: expected an integer, got {value!r}')
-            if isinstance(f.default, float) and (isinstance(value, bool)
-                                                 or not isinstance(value, (int, float))):
-                raise ValueError(f'{f.name}: expected a number, got {value!r}')
-            if not math.isfinite(value):
-                raise ValueError(f'{f.name}: must be finite, got {value!r}')
-            if low is not None and value < low or high is not None and value > high:
-                raise ValueError(f'{f.name}: {value!r} is outside [{low}, {high}]')
+            problem = value_problem(getattr(self, f.name), type(f.default).__name__,
+                                    f.metadata.get('min'), f.metadata.get('max'),
+                                    int_as_float=True)
+            if problem:
+                raise ValueError(f'{f.name}: {problem}')
         if self.slope_floor >= self.slope_ceiling:
             raise ValueError('slope_floor: must be below slope_ceiling')
         if self.min_length_factor >= self.max_length_factor:

@@ -1,17 +1,23 @@
 # SPDX-License-Identifier: Apache-2.0
 """GroundSegmenter: radial grid -> line-segments -> whole-frame GP -> per-point labels.
 
-Pipeline of one frame (stage names are the keys of ``SegmentationResult.timings_ms``):
+Pipeline of one frame (stage names are the keys of ``SegmentationResult.timings_ms``); [paper]
+marks the paper's steps, [ours] our additions (``additions.py``, each with a ``use_*`` switch):
 
-``grid``     valid points binned into M x N, lowest point per bin = ground candidate, rho~.
-``lines``    Algorithm 1 over each segment's candidates: line-segments, critical points, slopes.
-             Candidates on lines steeper than zeta_b are structure (walls, car fronts), not
-             ground: they do not train the GP (the paper: "large sloped line-segments relate to
-             non-ground structures").
-``gp_fit``   length scales from slope and rho~, robust rejection of outlier candidates, then
-             theta learned on the whole-frame marginal likelihood (warm-started, capped).
-``predict``  GP posterior mean and std of the ground height at every bin edge (N + 1 per
-             segment: a dense N x n kernel against every raw point would cost 100x more).
+``grid``     [paper] valid points binned into M x N, lowest point per bin = ground candidate,
+             rho~ (grid.py).
+``lines``    [paper] Algorithm 1 over each segment's candidates: line-segments, critical
+             points, slopes (lines.py). Candidates on lines steeper than zeta_b do not train
+             the GP ("large sloped line-segments relate to non-ground structures").
+             [ours] nor do candidates on elevated plateaus (``use_elevated_plateaus``).
+``gp_fit``   [paper] length scales from slope and rho~, theta learned on the whole-frame
+             marginal likelihood (eq. 14; warm-started and capped: ours).
+             [ours] the ground under the vehicle as a shared training point at r = 0
+             (``use_anchor``); leave-one-out rejection of outlier candidates before and after
+             learning (``use_outlier_rejection``).
+``predict``  [paper] GP posterior mean (and std) of the ground height, here at every bin edge
+             (N + 1 per segment: a dense N x n kernel against every raw point would cost 100x
+             more).
 ``label``    ground height of each point by linear interpolation along r between the bin
              edges of its segment; ground when z - z_hat <= threshold.
 ``structure`` (``use_vertical_structure_test``) ground points with a column of returns right
@@ -33,13 +39,13 @@ Choices where the paper is vague, each a parameter (see params.py):
   one-sided, as in the paper: anything below the predicted ground is ground (below-ground noise
   included -- it is not an obstacle). There is no height or range truncation anywhere.
 * The ground under the vehicle. All segments meet at r = 0, where the ground is the one the
-  vehicle stands on (also on a slope). Every segment's GP gets one shared pseudo-candidate at
-  r = 0 with the frame's estimate of that height (the median over segments of their first
-  line extrapolated to r = 0) and noise std ``anchor_std_m``. It ties the segments together,
-  so that a car parked right beside the sensor -- whose roof is the first and only nearby
-  candidate of its segments -- shows up as a step up from the vehicle's own ground and is
-  rejected, instead of becoming the ground. Segments without a single candidate predict that
-  height with the prior std sigma_f.
+  vehicle stands on (also on a slope). Every segment with a candidate gets one shared
+  pseudo-candidate at r = 0 with the frame's estimate of that height
+  (``additions.ground_under_sensor``) and noise std ``anchor_std_m``. It ties the segments
+  together, so that a car parked right beside the sensor -- whose roof is the first and only
+  nearby candidate of its segments -- shows up as a step up from the vehicle's own ground and
+  is rejected, instead of becoming the ground. Segments without a training point predict that
+  height (the GP's prior mean without the anchor) with the prior std sigma_f.
 """
 
 from __future__ import annotations
@@ -51,7 +57,9 @@ from typing import NamedTuple, Optional
 import numpy as np
 from threadpoolctl import ThreadpoolController
 
-from .gp import FrameGP, length_scale_factors
+from . import additions
+from . import gp_compiled
+from .gp import FrameGP, GPSolution, GroundAnchor, length_scale_factors, resolve_backend
 from .grid import RadialGrid, build_grid, relative_density
 from .lines import LineSegments, extract_lines
 from .params import SegmenterParams
@@ -101,7 +109,7 @@ class SegmentationDetails:
     ground_std: np.ndarray  # (M, N + 1) posterior std there (m)
     threshold: np.ndarray  # (P,) ground threshold applied to each valid point (m)
     gp: Optional[FrameGP] = None  # the frame's GP batch (rows = gp.segments), for analysis
-    gp_solution: Optional[object] = None  # its final factorisation (gp.GPSolution)
+    gp_solution: Optional[GPSolution] = None  # its final factorisation
     length_factor_at_edges: Optional[np.ndarray] = None  # (S, N + 1) d used at the bin edges
     structure_feet: Optional[np.ndarray] = None  # (P,) bool: passed the height test, obstacle
     # as the foot of a vertical structure (None when use_vertical_structure_test is off)
@@ -137,48 +145,27 @@ def valid_points_mask(xyz: np.ndarray) -> np.ndarray:
     return finite & ~((x == 0) & (y == 0) & (z == 0))
 
 
-def _ground_under_sensor(grid: RadialGrid, lines: LineSegments, training: np.ndarray) -> float:
-    """Height of the ground under the vehicle (r = 0), shared by all segments (m).
-
-    Every segment starts at the sensor, so all segment GPs meet at r = 0 where the ground is
-    the one the vehicle stands on, on a slope too. Each segment's first line-segment (two or
-    more candidates, not steep) extrapolated to r = 0 gives one estimate; the median over
-    segments is robust to the few whose first line is a car or a wall. Without such lines,
-    the median of the training candidates.
-    """
-    rows = np.flatnonzero(training.any(axis=1))
-    if rows.size == 0:
-        z = grid.candidate_z[np.isfinite(grid.candidate_z)]
-        return float(np.median(z)) if z.size else 0.0
-    first = np.argmax(training[rows], axis=1)
-    ids = lines.line_id[rows, first]
-    usable = (lines.line_count[ids] >= 2) & np.isfinite(lines.intercept[ids])
-    if usable.any():
-        return float(np.median(lines.intercept[ids[usable]]))
-    return float(np.median(grid.candidate_z[training]))
-
-
 class _GroundModel(NamedTuple):
     """What the ``gp_fit`` stage hands to ``predict``."""
 
     gp: FrameGP
-    solution: Optional[object]  # gp.GPSolution, None when no segment has a candidate
+    solution: Optional[GPSolution]  # None when no segment has a training point
     theta: np.ndarray  # (3,) sigma_f, a, sigma_n used for the frame
     training: np.ndarray  # (M, N) candidates that trained the GP
     outliers: np.ndarray  # (M, N) candidates rejected by the robust passes
     length_factor: np.ndarray  # (M, N) d_i
-    anchor_z: float  # ground height under the vehicle (m)
+    default_height: float  # ground height of segments without a training point (m)
 
 
 def _ground_at_bin_edges(model: _GroundModel, grid: RadialGrid, need_std: bool):
     """GP posterior mean (and std) at the N + 1 bin edges of every segment (stage ``predict``).
 
-    Segments without any candidate keep the anchor height and the prior std sigma_f.
+    Segments outside the GP batch keep ``model.default_height`` and the prior std sigma_f.
     Returns (edges, mean, std, d at the edges of the GP's segments) with (M, N + 1) arrays.
     """
     m_count, n_bins = grid.num_segments, grid.num_bins
     edges = grid.bin_edges()
-    mean = np.full((m_count, n_bins + 1), model.anchor_z)
+    mean = np.full((m_count, n_bins + 1), model.default_height)
     std = np.full((m_count, n_bins + 1), model.theta[0])
     d_star = None
     if model.solution is not None:
@@ -230,8 +217,12 @@ class GroundSegmenter:
     """
 
     def __init__(self, params: SegmenterParams | None = None,
-                 hyperparameters: Hyperparameters | None = None):
+                 hyperparameters: Hyperparameters | None = None, backend: str = 'auto'):
+        """``backend`` of the GP factorisation: 'numba', 'numpy' or 'auto' (numba if it
+        imports). If the compiled kernel fails at run time this segmenter uses numpy from then
+        on (``backend`` tells which one is in use)."""
         self._params = (params or SegmenterParams()).validate()
+        self._backend = resolve_backend(backend)
         if hyperparameters is None:
             p = self._params
             hyperparameters = Hyperparameters(p.sigma_f_init_m, p.length_scale_gain_init,
@@ -242,6 +233,24 @@ class GroundSegmenter:
     @property
     def params(self) -> SegmenterParams:
         return self._params
+
+    @property
+    def backend(self) -> str:
+        """GP factorisation in use: 'numba' or 'numpy'."""
+        return self._backend
+
+    def warm_up(self) -> None:
+        """Compile (or load from numba's cache) the GP kernel now, not inside the first frame.
+
+        On failure this segmenter switches to numpy and the error is raised for the caller to
+        report; segmenting still works.
+        """
+        if self._backend == 'numba':
+            try:
+                gp_compiled.warm_up()
+            except Exception:
+                self._backend = 'numpy'
+                raise
 
     @property
     def hyperparameters(self) -> Hyperparameters:
@@ -269,79 +278,105 @@ class GroundSegmenter:
         lo, hi = zip(*self._bounds())
         return Hyperparameters(*(float(v) for v in np.clip(np.asarray(theta, float), lo, hi)))
 
-    def _fit_ground_model(self, grid: RadialGrid, lines: LineSegments,
-                          stats: dict) -> _GroundModel:
-        """Length scales, anchor, robust rejection and theta learning (stage ``gp_fit``)."""
+    def _learning_budget_and_bounds(self, theta):
+        """Evaluation cap and bounds of this frame's theta search (a trust region once learned)."""
+        p = self._params
+        bounds = self._bounds()
+        if not self._has_learned:
+            return p.optimizer_first_frame_evaluations, bounds
+        ratio = p.optimizer_max_step_ratio  # theta moves at most x/÷ ratio a frame
+        return p.optimizer_max_evaluations, [(max(lo, t / ratio), min(hi, t * ratio))
+                                             for t, (lo, hi) in zip(theta, bounds)]
+
+    def _training_candidates(self, grid: RadialGrid, lines: LineSegments, stats: dict):
+        """Candidates that may train the GP: not on a steep line, not on an elevated plateau."""
         p = self._params
         has = grid.has_candidate
-        steep = has & (lines.slope > p.line_max_slope)
-        training = has & ~steep & ~lines.elevated
-        stats['elevated_candidates'] = int(lines.elevated.sum())
-        stats['candidates'] = int(has.sum())
-        stats['steep_line_candidates'] = int(steep.sum())
-        stats['lines'] = int(lines.line_count.size)
+        steep = has & additions.steep_line_candidates(lines.slope, p.line_max_slope)
+        elevated = np.zeros_like(has)
+        if p.use_elevated_plateaus:
+            elevated = additions.elevated_plateaus(
+                grid.candidate_r, grid.candidate_z, lines.slope_before, step_up_m=p.plateau_step_m,
+                max_slope=p.line_max_slope, max_gap_m=p.line_max_gap_m)
+        stats.update(candidates=int(has.sum()), steep_line_candidates=int(steep.sum()),
+                     elevated_candidates=int(elevated.sum()), lines=int(lines.line_count.size))
+        return has & ~steep & ~elevated
+
+    def _length_factors(self, grid: RadialGrid, lines: LineSegments, training):
+        """d_i of every candidate from its line's slope and its relative rho~ (gp.py)."""
+        p = self._params
         density_rel = relative_density(grid.density, grid.candidate_r, training)
-        d = length_scale_factors(lines.slope, density_rel,
-                                 slope_floor=p.slope_floor, slope_ceiling=p.slope_ceiling,
-                                 density_in_flat_branch=p.density_in_flat_branch,
-                                 d_min=p.min_length_factor, d_max=p.max_length_factor)
-        m_count, n_bins = grid.num_segments, grid.num_bins
-        anchor_z = _ground_under_sensor(grid, lines, training)
-        stats['anchor_height_m'] = anchor_z
-        # column 0 of every segment is the shared anchor: the ground under the vehicle (r = 0)
-        anchored = has.any(axis=1, keepdims=True)
-        gp = FrameGP(np.concatenate([np.zeros((m_count, 1)), grid.candidate_r], axis=1),
-                     np.concatenate([np.full((m_count, 1), anchor_z), grid.candidate_z], axis=1),
-                     np.concatenate([_fill_along_rows(d, training)[:, :1], d], axis=1),
-                     np.concatenate([anchored, training], axis=1))
-        is_anchor = (gp.columns == 0) & gp.valid
-        gp.extra_noise[is_anchor] = p.anchor_std_m ** 2
-        outliers = np.zeros_like(gp.valid)
+        return length_scale_factors(lines.slope, density_rel,
+                                    slope_floor=p.slope_floor, slope_ceiling=p.slope_ceiling,
+                                    density_in_flat_branch=p.density_in_flat_branch,
+                                    d_min=p.min_length_factor, d_max=p.max_length_factor)
+
+    def _anchor(self, grid: RadialGrid, lines: LineSegments, training, d, stats):
+        """The ground under the vehicle as a GP point at r = 0 of every segment with candidates."""
+        p = self._params
+        if not p.use_anchor:
+            return None
+        height = additions.ground_under_sensor(grid.candidate_z, training, lines.line_id,
+                                               lines.line_count, lines.intercept)
+        stats['anchor_height_m'] = height
+        return GroundAnchor(height, p.anchor_std_m ** 2, grid.has_candidate.any(axis=1),
+                            _fill_along_rows(d, training)[:, 0])
+
+    def _reject_outliers(self, gp: FrameGP, sol: GPSolution, outliers):
+        """One robust pass: (GP, solution, outliers) with the new outliers' noise made huge."""
+        p = self._params
+        if not p.use_outlier_rejection:
+            return gp, sol, outliers
+        loo = gp.to_grid(gp.loo_residuals(sol), np.nan)
+        new = ~outliers & additions.outlier_candidates(loo, above_m=p.outlier_residual_m,
+                                                       below_m=p.noise_spike_m)
+        if not new.any():
+            return gp, sol, outliers
+        outliers = outliers | new
+        gp = gp.with_noise(np.where(outliers, _OUTLIER_NOISE_VAR, 0.0))
+        return gp, gp.solve(sol.theta), outliers
+
+    def _fit_robustly(self, gp: FrameGP, stats: dict):
+        """Robust pass at the warm-started theta, theta learning, robust pass at the new theta.
+
+        Two passes, so that an outlier pair masking each other in the first is caught in the
+        second. Returns (final GP, its solution, theta, outliers (M, N)).
+        """
         theta = np.asarray(self._theta, dtype=np.float64)
-
-        def reject_outliers(sol):
-            loo = gp.loo_residuals(sol)
-            new = (gp.valid & ~is_anchor & ~outliers
-                   & ((loo > p.outlier_residual_m) | (loo < -p.noise_spike_m)))
-            outliers[new] = True
-            gp.extra_noise[new] = _OUTLIER_NOISE_VAR
-            return bool(new.any())
-
-        sol = None
-        if gp.num_points:
-            # robust pass 1 at the warm-started theta, learning, robust pass 2 at the new theta
+        outliers = np.zeros(gp.shape, dtype=bool)
+        if not gp.num_points:
+            return gp, None, theta, outliers
+        gp, sol, outliers = self._reject_outliers(gp, gp.solve(theta), outliers)
+        evaluations, bounds = self._learning_budget_and_bounds(theta)
+        new_theta, info = gp.fit(theta, bounds, evaluations)
+        stats.update(optimizer_evaluations=info['evaluations'],
+                     optimizer_iterations=info['iterations'],
+                     optimizer_failures=int(info['failed']))
+        if evaluations > 0 and not info['failed']:
+            self._has_learned = True
+        if not np.allclose(new_theta, theta):
+            theta = new_theta
             sol = gp.solve(theta)
-            if reject_outliers(sol):
-                sol = gp.solve(theta)
-            iterations = (p.optimizer_max_evaluations if self._has_learned
-                          else p.optimizer_first_frame_evaluations)
-            bounds = self._bounds()
-            if self._has_learned:  # trust region: theta moves at most x/÷ step ratio a frame
-                ratio = p.optimizer_max_step_ratio
-                bounds = [(max(lo, t / ratio), min(hi, t * ratio))
-                          for t, (lo, hi) in zip(theta, bounds)]
-            new_theta, info = gp.fit(theta, bounds, iterations)
-            stats['optimizer_iterations'] = info['iterations']
-            stats['optimizer_failures'] = int(info['failed'])
-            if iterations > 0 and not info['failed']:
-                self._has_learned = True
-            if not np.allclose(new_theta, theta):
-                theta = new_theta
-                sol = gp.solve(theta)
-            if reject_outliers(sol):
-                sol = gp.solve(theta)
-            stats['log_marginal_likelihood'] = float(sol.lml)
-        self._theta = Hyperparameters(*(float(v) for v in theta))
-        # back from the GP's padded (S, n) slots to the grid's (M, N) bins
-        train_full = np.zeros((m_count, n_bins + 1), dtype=bool)
-        out_full = np.zeros((m_count, n_bins + 1), dtype=bool)
-        train_full[gp.segments[:, None], gp.columns] = gp.valid & ~outliers
-        out_full[gp.segments[:, None], gp.columns] = outliers
-        train_full, out_full = train_full[:, 1:], out_full[:, 1:]
-        stats['outlier_candidates'] = int(out_full.sum())
-        stats['training_candidates'] = int(train_full.sum())
+        gp, sol, outliers = self._reject_outliers(gp, sol, outliers)
+        stats['log_marginal_likelihood'] = float(sol.lml)
         stats['cholesky_fallbacks'] = gp.cholesky_fallbacks
-        return _GroundModel(gp, sol, theta, train_full, out_full, d, anchor_z)
+        self._backend = gp.backend  # 'numpy' for good once the compiled kernel failed
+        return gp, sol, theta, outliers
+
+    def _fit_ground_model(self, grid: RadialGrid, lines: LineSegments, training,
+                          stats: dict) -> _GroundModel:
+        """Stage ``gp_fit``: length scales, the anchor, the GP, robust learning of theta."""
+        d = self._length_factors(grid, lines, training)
+        anchor = self._anchor(grid, lines, training, d, stats)
+        gp = FrameGP(grid.candidate_r, grid.candidate_z, d, training, anchor=anchor,
+                     backend=self._backend)
+        gp, sol, theta, outliers = self._fit_robustly(gp, stats)
+        self._theta = Hyperparameters(*(float(v) for v in theta))
+        trained = gp.to_grid(gp.valid, False) & ~outliers
+        stats['outlier_candidates'] = int(outliers.sum())
+        stats['training_candidates'] = int(trained.sum())
+        default_height = anchor.height_m if anchor is not None else gp.mean
+        return _GroundModel(gp, sol, theta, trained, outliers, d, default_height)
 
     # ------------------------------------------------------------------------------------
     def segment(self, points: np.ndarray, details: bool = False) -> SegmentationResult:
@@ -357,7 +392,8 @@ class GroundSegmenter:
         timings = {}
         stats = {'points': 0, 'valid_points': 0, 'candidates': 0, 'training_candidates': 0,
                  'outlier_candidates': 0, 'steep_line_candidates': 0, 'lines': 0,
-                 'cholesky_fallbacks': 0, 'optimizer_iterations': 0, 'optimizer_failures': 0,
+                 'elevated_candidates': 0, 'cholesky_fallbacks': 0, 'optimizer_evaluations': 0,
+                 'optimizer_iterations': 0, 'optimizer_failures': 0,
                  'log_marginal_likelihood': float('nan'), 'structure_feet': 0}
         pts = np.asarray(points)
         if pts.ndim != 2 or pts.shape[1] < 3:
@@ -384,19 +420,19 @@ class GroundSegmenter:
         del xyz_v
 
         t = time.perf_counter()
-        grid = build_grid(x, y, z, p.num_segments, p.num_bins, p.density_slices)
+        grid = build_grid(x, y, z, p.num_segments, p.num_bins)
         timings['grid'] = (time.perf_counter() - t) * 1e3
 
         t = time.perf_counter()
         lines = extract_lines(grid.candidate_r, grid.candidate_z, grid.density,
                               variance_ratio=p.deming_variance_ratio, max_slope=p.line_max_slope,
                               max_distance_m=p.line_max_distance_m, max_gap_m=p.line_max_gap_m,
-                              max_density_jump=p.line_max_density_jump,
-                              step_up_m=p.plateau_step_m)
+                              max_density_jump=p.line_max_density_jump)
+        training = self._training_candidates(grid, lines, stats)
         timings['lines'] = (time.perf_counter() - t) * 1e3
 
         t = time.perf_counter()
-        model = self._fit_ground_model(grid, lines, stats)
+        model = self._fit_ground_model(grid, lines, training, stats)
         theta = model.theta
         timings['gp_fit'] = (time.perf_counter() - t) * 1e3
 

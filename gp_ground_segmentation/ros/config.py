@@ -15,15 +15,14 @@ bool as ``true``/``false``. The errors say which key and which type was expected
 from __future__ import annotations
 
 import dataclasses
-import math
 import re
 import textwrap
 from pathlib import Path
 
-from ..core.params import SegmenterParams, describe_params
+from ..core.params import SegmenterParams, describe_params, value_problem
 
 __all__ = ['NODE_NAME', 'NODE_PARAMS', 'ParameterConfigError', 'all_param_specs',
-           'check_param_value', 'describe_node_params', 'load_params_file',
+           'check_param_value', 'describe_node_params', 'is_ros_builtin', 'load_params_file',
            'node_param_defaults', 'render_params_table', 'render_params_yaml', 'split_params',
            'validate_node_params']
 
@@ -49,11 +48,8 @@ NODE_PARAMS = {
 }
 
 # Parameters every rclpy node has or may get from rclpy itself; a params file may set them.
-_ROS_BUILTIN_PARAMS = {'use_sim_time': 'bool', 'start_type_description_service': 'bool'}
-_ROS_BUILTIN_PREFIXES = ('qos_overrides.',)
-
-_TYPE_NAMES = {'float': 'a double (write it with a decimal point, e.g. 80.0)',
-               'int': 'an integer (no decimal point)', 'bool': 'a bool (true/false)'}
+ROS_BUILTIN_PARAMS = ('use_sim_time', 'start_type_description_service')
+ROS_BUILTIN_PREFIXES = ('qos_overrides.',)
 
 
 class ParameterConfigError(ValueError):
@@ -80,14 +76,9 @@ def node_param_defaults() -> dict:
     return {name: spec['default'] for name, spec in NODE_PARAMS.items()}
 
 
-def _type_of(value) -> str | None:
-    if isinstance(value, bool):
-        return 'bool'
-    if isinstance(value, int):
-        return 'int'
-    if isinstance(value, float):
-        return 'float'
-    return None
+def is_ros_builtin(name: str) -> bool:
+    """A parameter rclpy itself has or may get (a params file may set it; not ours to check)."""
+    return name in ROS_BUILTIN_PARAMS or name.startswith(ROS_BUILTIN_PREFIXES)
 
 
 def check_param_value(name: str, value, specs: dict | None = None) -> None:
@@ -97,20 +88,9 @@ def check_param_value(name: str, value, specs: dict | None = None) -> None:
         raise ParameterConfigError(
             f"unknown parameter '{name}' (known: {', '.join(sorted(specs))})")
     spec = specs[name]
-    got = _type_of(value)
-    if got != spec['type']:
-        ros_names = {'float': 'double', 'int': 'integer', 'bool': 'bool'}
-        shown = type(value).__name__ if got is None else ros_names[got]
-        raise ParameterConfigError(
-            f"parameter '{name}': expected {_TYPE_NAMES[spec['type']]}, got {shown} {value!r}")
-    if spec['type'] == 'bool':
-        return
-    if not math.isfinite(value):
-        raise ParameterConfigError(f"parameter '{name}': must be finite, got {value!r}")
-    low, high = spec.get('min'), spec.get('max')
-    if (low is not None and value < low) or (high is not None and value > high):
-        raise ParameterConfigError(
-            f"parameter '{name}': {value!r} is outside [{low}, {high}]")
+    problem = value_problem(value, spec['type'], spec.get('min'), spec.get('max'))
+    if problem:
+        raise ParameterConfigError(f"parameter '{name}': {problem}")
 
 
 def split_params(values: dict) -> tuple[dict, dict]:
@@ -218,7 +198,7 @@ def load_params_file(path, node_name: str = NODE_NAME, namespace: str = '/'):
             f"'ros__parameters:' under it)")
     specs = all_param_specs()
     for name, value in values.items():
-        if name in _ROS_BUILTIN_PARAMS or name.startswith(_ROS_BUILTIN_PREFIXES):
+        if is_ros_builtin(name):
             continue
         try:
             check_param_value(name, value, specs)

@@ -56,9 +56,8 @@ from sensor_msgs.msg import PointCloud2
 
 from .cloud import CloudFormatError
 from .config import (NODE_NAME, NODE_PARAMS, ParameterConfigError, all_param_specs,
-                     check_param_value, split_params)
+                     check_param_value, is_ros_builtin, split_params)
 from .diagnostics import ProcessingWindow, diagnostics_array, diagnostics_status
-from ..core import gp, gp_compiled
 from ..core.params import SegmenterParams
 from .pipeline import process_cloud
 from ..core.segmenter import GroundSegmenter
@@ -71,8 +70,6 @@ OUTPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
 DIAGNOSTICS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                              reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.VOLATILE)
-_BUILTIN_PARAMS = ('use_sim_time', 'start_type_description_service')
-_BUILTIN_PREFIXES = ('qos_overrides.',)
 _LOG_THROTTLE_S = 5.0
 _TYPES = {'float': ParameterType.PARAMETER_DOUBLE, 'int': ParameterType.PARAMETER_INTEGER,
           'bool': ParameterType.PARAMETER_BOOL}
@@ -151,7 +148,7 @@ class GroundSegmentationNode(Node):
         YAML would then leave a default in force unnoticed, so it is an error here.
         """
         for name, param in sorted(self._parameter_overrides.items()):
-            if name in _BUILTIN_PARAMS or name.startswith(_BUILTIN_PREFIXES):
+            if is_ros_builtin(name):
                 continue
             check_param_value(name, param.value, self._specs)
 
@@ -230,11 +227,12 @@ class GroundSegmentationNode(Node):
 
     # --- worker thread ---------------------------------------------------------------------
     def _worker_loop(self) -> None:
+        warm_up = getattr(self._segmenter, 'warm_up', None)
         try:
-            gp_compiled.warm_up()  # load the compiled GP kernel before the first cloud arrives
-        except Exception as exc:  # noqa: BLE001 - numpy fallback still works; say so once
+            if warm_up is not None:
+                warm_up()  # load the compiled GP kernel before the first cloud arrives
+        except Exception as exc:  # noqa: BLE001 - the segmenter now uses numpy; say so once
             self.get_logger().warning(f'compiled GP kernel unavailable, using numpy: {exc}')
-            gp.USE_COMPILED = False
         while True:
             with self._cond:
                 while not self._slot and not self._stopping:

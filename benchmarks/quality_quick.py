@@ -13,12 +13,14 @@ cross-validation holds out:
 * ``kitti00`` KITTI 00 frames 0-2 with SemanticKITTI labels (3 consecutive frames = 1 scene);
 * ``rellis``  the RELLIS-3D off-road scan (Ouster OS1-64, organised, RELLIS ontology);
 * the synthetic groups of ``common.synthetic_datasets`` (flat, sloped, mixed; exact truth).
+(loaders of ``common``; bench_quality.py is the full evaluation with more families and peers.)
 
 Every frame is segmented cold (a new ``GroundSegmenter`` per frame) by this project with
 ``--set`` changes over the defaults, by the ``--baseline`` parameter set (default: the defaults)
 and by Patchwork++ (``pypatchworkpp`` defaults, a fresh instance per frame, ``sensor_height``
-1.73 m on KITTI, 1.27 m on RELLIS: the median height of the labelled ground 3-8 m from that
-sensor is -1.27 m). Scores: ``gp_ground_segmentation.tools.evaluation``, pooled TP/FP/FN.
+= the frame's mount height: 1.73 m on KITTI, on RELLIS minus the median z of its labelled
+ground 3-10 m away, 1.27 m; RNR off where intensity is not KITTI remission).
+Scores: ``gp_ground_segmentation.tools.evaluation``, pooled TP/FP/FN.
 
 ``--cv name=v1,v2,... [name2=...]`` picks parameter values (a joint grid) by leave-one-scene-out:
 for each held-out real scene the values with the highest mean F1 over the *other* units (real
@@ -41,50 +43,26 @@ import common  # noqa: E402
 from bench_peers import PatchworkPPMethod  # noqa: E402
 
 from gp_ground_segmentation import GroundSegmenter, SegmenterParams  # noqa: E402
-from gp_ground_segmentation.tools.evaluation import (  # noqa: E402
-    RELLIS_3D, SEMANTIC_KITTI, ground_truth_from_labels)
-from gp_ground_segmentation.tools.io import read_kitti_bin, read_semantickitti_labels  # noqa
 
 RESULTS = Path(__file__).resolve().parent / 'RESULTS.md'
-LABELED = common.DATA_DIR / 'labeled'
-RELLIS_SENSOR_HEIGHT_M = 1.27  # median z of RELLIS ground 3-8 m from the sensor is -1.27 m
-
-# scene -> (frames as (bin, label) paths, ontology, sensor height for Patchwork++ in m)
-REAL_SCENES = {
-    'spvnas': ([(common.DATA_DIR / common.LABELED_BIN, common.DATA_DIR / common.LABELED_LABEL)],
-               SEMANTIC_KITTI, common.KITTI_SENSOR_HEIGHT_M),
-    'kitti00': ([(LABELED / f'semantickitti_seq00_00000{i}.bin',
-                  LABELED / f'semantickitti_seq00_00000{i}.label') for i in range(3)],
-                SEMANTIC_KITTI, common.KITTI_SENSOR_HEIGHT_M),
-    'rellis': ([(LABELED / 'rellis3d_examplebundle_000001.bin',
-                 LABELED / 'rellis3d_examplebundle_000001.label')],
-               RELLIS_3D, RELLIS_SENSOR_HEIGHT_M),
-}
 
 
 def load_units():
-    """[(unit name, is_real, Dataset, sensor height)] for every scene whose files exist."""
+    """[(unit name, is_real, Dataset)]: the real scenes whose files exist, synthetic groups."""
     units = []
-    for scene, (paths, ontology, height) in REAL_SCENES.items():
-        frames = []
-        for bin_path, label_path in paths:
-            if common._missing(bin_path) or common._missing(label_path):
-                continue
-            pts = np.ascontiguousarray(read_kitti_bin(bin_path), dtype=np.float32)
-            labels = read_semantickitti_labels(label_path, expected_points=len(pts))
-            truth, evaluated = ground_truth_from_labels(labels, ontology=ontology)
-            frames.append(common.Frame(bin_path.stem, pts, True, truth, evaluated))
-        if frames:
-            units.append((scene, True, common.Dataset(scene, frames, ontology.name), height))
-    for ds in common.synthetic_datasets(seed=0):
-        units.append((ds.name, False, ds, common.KITTI_SENSOR_HEIGHT_M))
+    for name, loader in (('spvnas', common.load_labeled_kitti),
+                         ('kitti00', common.load_kitti00_labeled), ('rellis', common.load_rellis)):
+        ds = loader()
+        if ds is not None:
+            units.append((name, True, ds))
+    units += [(ds.name, False, ds) for ds in common.synthetic_datasets(seed=0)]
     return units
 
 
 def run_gp(params: SegmenterParams, units) -> dict:
     """{frame name: (metrics, result)} of a cold segmenter per frame."""
     out = {}
-    for _, _, ds, _ in units:
+    for _, _, ds in units:
         for frame in ds.frames:
             result = GroundSegmenter(params).segment(frame.points)
             out[frame.name] = (common.score(result.ground_mask, frame), result)
@@ -94,9 +72,9 @@ def run_gp(params: SegmenterParams, units) -> dict:
 def run_patchworkpp(units) -> dict:
     """{frame name: metrics} of Patchwork++ with a fresh instance per frame (cold)."""
     out = {}
-    for _, _, ds, height in units:
-        method = PatchworkPPMethod(height)
+    for _, _, ds in units:
         for frame in ds.frames:
+            method = PatchworkPPMethod(frame.mount_height_m or common.KITTI_SENSOR_HEIGHT_M)
             method.start(common.Dataset(ds.name, [frame]))
             out[frame.name] = common.score(method.run(frame), frame)
     return out
@@ -107,7 +85,7 @@ def unit_f1(units, per_frame: dict) -> dict:
     def metrics(v):
         return v[0] if isinstance(v, tuple) else v
     return {name: common.pool([metrics(per_frame[f.name]) for f in ds.frames])['f1']
-            for name, _, ds, _ in units}
+            for name, _, ds in units}
 
 
 def _prf(m) -> str:
@@ -124,7 +102,7 @@ def report(units, ours, base, pwpp, ours_label, base_label) -> str:
     def add(label, npts, b, o, p):
         rows.append([label, npts, _prf(b), _prf(o), _prf(p), common.fmt(o['f1'] - p['f1'], 3)])
 
-    for name, is_real, ds, _ in units:
+    for name, is_real, ds in units:
         if is_real:
             for f in ds.frames:
                 add(f.name, common.fmt(len(f)), base[f.name][0], ours[f.name][0], pwpp[f.name])
@@ -133,9 +111,9 @@ def report(units, ours, base, pwpp, ours_label, base_label) -> str:
         pooled[name] = (b, o, p)
         add(f'**{name}** pooled ({len(ds.frames)} frames)', '-', b, o, p)
     groups = (('real SemanticKITTI (4 scans)', ('spvnas', 'kitti00')),
-              ('all synthetic', tuple(n for n, real, _, _ in units if not real)))
+              ('all synthetic', tuple(n for n, real, _ in units if not real)))
     for label, names in groups:
-        frames = [f for n, _, ds, _ in units if n in names for f in ds.frames]
+        frames = [f for n, _, ds in units if n in names for f in ds.frames]
         if not frames:
             continue
         b, o, p = (common.pool([(r[f.name][0] if isinstance(r[f.name], tuple) else r[f.name])
@@ -165,9 +143,9 @@ def cross_validate(units, grid: dict, base_params: SegmenterParams) -> str:
         f1[combo] = unit_f1(units, per_frame)
         print(f'[cv] {combo}: ' + ', '.join(f'{u} {s:.4f}' for u, s in f1[combo].items()),
               file=sys.stderr)
-    all_units = [u for u, _, _, _ in units]
+    all_units = [u for u, _, _ in units]
     rows = []
-    for held, is_real, _, _ in units:
+    for held, is_real, _ in units:
         if not is_real:
             continue
         others = [u for u in all_units if u != held]

@@ -59,9 +59,9 @@ def _polar_cells(x, y, r, cell_m: float, cell_rad: float):
     return az, ring.astype(np.int32), n_az
 
 
-def _within(index, x, y, limit):
+def _within(index, r, limit):
     """The entries of ``index`` whose points lie within ``limit`` of the sensor, and their r."""
-    r = np.hypot(x[index], y[index])
+    r = r[index]
     near = r <= limit
     return index[near], r[near]
 
@@ -69,7 +69,7 @@ def _within(index, x, y, limit):
 def vertical_structure_mask(x: np.ndarray, y: np.ndarray, z: np.ndarray,
                             ground_z: np.ndarray, candidate: np.ndarray, *, cell_m: float,
                             cell_deg: float, rise_m: float, max_height_m: float,
-                            step_m: float) -> np.ndarray:
+                            step_m: float, r: np.ndarray | None = None) -> np.ndarray:
     """Bool mask of the ``candidate`` points that stand at the foot of a vertical structure.
 
     x, y, z: (P,) finite coordinates (m); ground_z: (P,) predicted ground height under each
@@ -77,15 +77,18 @@ def vertical_structure_mask(x: np.ndarray, y: np.ndarray, z: np.ndarray,
     cell size (m) near the sensor; cell_deg: azimuth cell (deg); rise_m, max_height_m, step_m: a
     point of the neighbourhood between rise_m and max_height_m above the predicted ground (m)
     and more than step_m above the candidate itself (m) makes the candidate a structure foot.
+    r: (P,) horizontal range sqrt(x^2 + y^2) (m) when the caller has it.
     Returns a (P,) bool mask, a subset of ``candidate``.
     """
     out = np.zeros(candidate.shape, dtype=bool)
     height = z - ground_z
     cell_rad = np.radians(cell_deg)
     limit = max(_MAX_CELL_M, cell_m) / cell_rad
-    column, r_col = _within(np.flatnonzero((height > rise_m) & (height <= max_height_m)), x, y,
+    if r is None:
+        r = np.hypot(x, y)
+    column, r_col = _within(np.flatnonzero((height > rise_m) & (height <= max_height_m)), r,
                             limit)
-    cand, r_cand = _within(np.flatnonzero(candidate), x, y, limit)
+    cand, r_cand = _within(np.flatnonzero(candidate), r, limit)
     if cand.size == 0 or column.size == 0:
         return out
     az_col, ring_col, n_az = _polar_cells(x[column], y[column], r_col, cell_m, cell_rad)

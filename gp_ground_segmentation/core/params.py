@@ -197,8 +197,9 @@ class SegmenterParams:
             # max_threshold_m caps the total threshold: a larger ground_threshold_m would be cut
             # back to it silently (ros2 param set changes one parameter at a time)
             raise ValueError(f'ground_threshold_m: {self.ground_threshold_m!r} is above '
-                             f'max_threshold_m {self.max_threshold_m!r}, which caps the '
-                             'threshold; raise max_threshold_m first')
+                             f'max_threshold_m {self.max_threshold_m!r}, the cap on the total '
+                             'threshold; to raise the threshold, raise max_threshold_m first; '
+                             'to lower the cap, lower ground_threshold_m first')
         if self.structure_rise_m >= self.structure_max_height_m:
             raise ValueError(f'structure_rise_m: {self.structure_rise_m!r} must be below '
                              f'structure_max_height_m {self.structure_max_height_m!r}; raise '

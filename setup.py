@@ -38,9 +38,12 @@ setup(
         'ros-jazzy-common-interfaces',
     ],
     extras_require={
-        # matplotlib so that CI also runs the plotting tests instead of skipping them
-        'test': ['pytest', 'hypothesis', 'matplotlib', 'flake8'],
+        # matplotlib so that CI also runs the plotting tests instead of skipping them; Dask and
+        # Optuna so that the batch/tune tests run on a real LocalCluster there
+        'test': ['pytest', 'hypothesis', 'matplotlib', 'flake8', 'dask[distributed]', 'optuna'],
         'plot': ['matplotlib'],
+        'scale': ['dask[distributed]'],  # gp-ground-seg batch/tune --jobs/--scheduler
+        'tune': ['optuna'],  # gp-ground-seg tune
         'bench': ['pypatchworkpp', 'linefit'],
     },
     zip_safe=True,

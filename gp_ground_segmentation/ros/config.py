@@ -23,7 +23,8 @@ from ..core.params import SegmenterParams, describe_params, value_problem
 
 __all__ = ['NODE_NAME', 'NODE_PARAMS', 'ParameterConfigError', 'all_param_specs',
            'check_param_value', 'describe_node_params', 'is_ros_builtin', 'load_params_file',
-           'node_param_defaults', 'render_params_table', 'render_params_yaml', 'split_params',
+           'node_param_defaults', 'render_param_overrides', 'render_params_table',
+           'render_params_yaml', 'split_params',
            'validate_node_params']
 
 NODE_NAME = 'ground_segmentation'
@@ -263,6 +264,18 @@ def render_params_yaml(node_name: str = NODE_NAME) -> str:
             comment = f"{row['description']}; {row['type']}{_range_text(row)}{ro}"
             lines.extend('    # ' + part for part in textwrap.wrap(comment, 94))
             lines.append(f"    {row['name']}: {_yaml_scalar(row['default'])}")
+    return '\n'.join(lines) + '\n'
+
+
+def render_param_overrides(values: dict, header_lines=(), node_name: str = NODE_NAME) -> str:
+    """A parameter file with only ``values`` (checked like load_params_file), in the layout of
+    config/params.yaml, under a comment header (e.g. what a tuner tuned on)."""
+    specs = all_param_specs()
+    for name, value in values.items():
+        check_param_value(name, value, specs)
+    lines = ['# ' + part for text in header_lines for part in textwrap.wrap(text, 96)]
+    lines += [f'{node_name}:', '  ros__parameters:' + ('' if values else ' {}')]
+    lines += [f'    {name}: {_yaml_scalar(value)}' for name, value in values.items()]
     return '\n'.join(lines) + '\n'
 
 

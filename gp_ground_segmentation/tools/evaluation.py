@@ -12,6 +12,10 @@ Protocol for SemanticKITTI (follows the Patchwork / Patchwork++ evaluation):
 
 "Positive" means *ground*: precision = TP / (TP + FP) is the share of points called ground that are
 ground, recall = TP / (TP + FN) the share of true ground that was found.
+
+RELLIS-3D (``ontology=RELLIS_3D``) has its own class ids: ground = 1 dirt, 3 grass, 10 asphalt,
+23 concrete, 31 puddle, 33 mud; 0 void is ignored (it also holds every (0, 0, 0) no-return of
+the organised Ouster cloud); everything else (trees, bushes, fences, people, ...) is non-ground.
 """
 
 from __future__ import annotations
@@ -36,6 +40,9 @@ class LabelOntology(NamedTuple):
 
 SEMANTIC_KITTI = LabelOntology('SemanticKITTI', GROUND_CLASSES, IGNORED_CLASSES, VEGETATION_CLASS)
 RELLIS_3D = LabelOntology('RELLIS-3D', (1, 3, 10, 23, 31, 33), (0,))
+# name -> (ground classes, ignored classes), for tools that take the two lists (tools.tune)
+DATASET_CLASSES = {'semantickitti': (SEMANTIC_KITTI.ground, SEMANTIC_KITTI.ignored),
+                   'rellis3d': (RELLIS_3D.ground, RELLIS_3D.ignored)}
 
 
 def semantic_classes(labels: np.ndarray) -> np.ndarray:
@@ -49,11 +56,15 @@ def ground_truth_from_labels(semantic_labels: np.ndarray, vegetation_is_ground: 
     """(truth_ground, evaluated) boolean masks from raw .label values or semantic classes."""
     if vegetation_is_ground and ontology.vegetation is None:
         raise ValueError(f'vegetation_is_ground: {ontology.name} labels have no such variant')
-    classes = semantic_classes(semantic_labels)
     ground_classes = ontology.ground + ((ontology.vegetation,) if vegetation_is_ground else ())
-    truth = np.isin(classes, ground_classes)
-    evaluated = ~np.isin(classes, ontology.ignored)
-    return truth, evaluated
+    return labelled_ground_truth(semantic_labels, ground_classes, ontology.ignored)
+
+
+def labelled_ground_truth(labels: np.ndarray, ground_classes, ignored_classes
+                          ) -> tuple[np.ndarray, np.ndarray]:
+    """(truth_ground, evaluated) masks of .label values for any ontology's class lists."""
+    classes = semantic_classes(labels)
+    return np.isin(classes, ground_classes), ~np.isin(classes, ignored_classes)
 
 
 def truth_metrics(pred_ground_mask: np.ndarray, truth_ground_mask: np.ndarray,

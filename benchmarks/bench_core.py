@@ -36,7 +36,7 @@ import common  # noqa: E402
 from gp_ground_segmentation import GroundSegmenter, SegmenterParams  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / 'RESULTS.md'
-STAGE_ORDER = ('grid', 'lines', 'gp_fit', 'predict', 'label')
+STAGE_ORDER = ('grid', 'lines', 'gp_fit', 'predict', 'label', 'structure')
 
 
 def load_frames(which):

@@ -158,7 +158,8 @@ def _fake_output(total_ms=10.0, n=100, n_ground=60, n_invalid=5, stats=None):
     valid[:n_invalid] = False
     ground = np.zeros(n, bool)
     ground[n_invalid:n_invalid + n_ground] = True
-    timings = {'grid': 1.0, 'lines': 1.0, 'gp_fit': 5.0, 'predict': 1.0, 'label': 1.0,
+    timings = {'grid': 1.0, 'lines': 1.0, 'gp_fit': 4.5, 'predict': 1.0, 'label': 1.0,
+               'structure': 0.5,
                'total': total_ms - 2.0}
     res = SegmentationResult(ground, valid, np.zeros(n), Hyperparameters(0.5, 2.0, 0.05),
                              timings, dict(stats or {'cholesky_fallbacks': 1}))

@@ -40,8 +40,13 @@ def test_sloped_scene_recall_and_precision(scans, name):
     scan = scans[name]
     _, result = _stream(scan.points)
     m = truth_metrics(result.ground_mask, scan.is_ground)
-    assert m['recall'] >= 0.97, m
-    assert m['precision'] >= 0.95, m
+    # measured (defaults, 3rd streamed frame): recall 0.967-0.980, precision 0.989-0.998,
+    # F1 0.980-0.988. The structure test trades ~0.8 points of recall (the ground strip within
+    # a few cm of wall and car feet) for 3-4 points of precision (without it: R 0.975-0.987,
+    # P 0.953-0.963, F1 0.966-0.970)
+    assert m['recall'] >= 0.965, m
+    assert m['precision'] >= 0.985, m
+    assert m['f1'] >= 0.978, m
 
 
 @pytest.mark.parametrize('name', SLOPED + ('hill',))
@@ -257,7 +262,10 @@ def test_details_are_consistent(scans):
     # labels follow from the reported heights and thresholds
     z = scan.points[d.valid_index, 2]
     recomputed = z - result.ground_height[d.valid_index] <= d.threshold + 1e-6
+    assert (d.structure_feet <= recomputed).all()  # the structure test only takes ground away
+    recomputed &= ~d.structure_feet
     assert (recomputed == result.ground_mask[d.valid_index]).mean() > 0.9999
+    assert d.structure_feet.sum() == result.stats['structure_feet'] > 0
 
 
 def test_theta_stays_inside_bounds_when_scenes_alternate(scans):

@@ -20,6 +20,9 @@ marks the paper's steps, [ours] our additions (``additions.py``, each with a ``u
              more).
 ``label``    ground height of each point by linear interpolation along r between the bin
              edges of its segment; ground when z - z_hat <= threshold.
+``structure`` (``use_vertical_structure_test``) ground points with a column of returns right
+             above them are the feet of walls, fences, cars, trunks and bushes: obstacle
+             (``structure.vertical_structure_mask``).
 
 Choices where the paper is vague, each a parameter (see params.py):
 
@@ -60,6 +63,7 @@ from .gp import FrameGP, GPSolution, GroundAnchor, length_scale_factors, resolve
 from .grid import RadialGrid, build_grid, relative_density
 from .lines import LineSegments, extract_lines
 from .params import SegmenterParams
+from .structure import vertical_structure_mask
 from .surface import GroundSurface, ground_offsets
 
 _OUTLIER_NOISE_VAR = 1e4  # m^2: a rejected candidate's noise variance (std 100 m)
@@ -108,6 +112,8 @@ class SegmentationDetails:
     gp: Optional[FrameGP] = None  # the frame's GP batch (rows = gp.segments), for analysis
     gp_solution: Optional[GPSolution] = None  # its final factorisation
     length_factor_at_edges: Optional[np.ndarray] = None  # (S, N + 1) d used at the bin edges
+    structure_feet: Optional[np.ndarray] = None  # (P,) bool: passed the height test, obstacle
+    # as the foot of a vertical structure (None when use_vertical_structure_test is off)
 
 
 @dataclass
@@ -424,7 +430,7 @@ class GroundSegmenter:
                  'outlier_candidates': 0, 'steep_line_candidates': 0, 'lines': 0,
                  'elevated_candidates': 0, 'cholesky_fallbacks': 0, 'optimizer_evaluations': 0,
                  'optimizer_iterations': 0, 'optimizer_failures': 0,
-                 'log_marginal_likelihood': float('nan')}
+                 'log_marginal_likelihood': float('nan'), 'structure_feet': 0}
         pts = np.asarray(points)
         if pts.ndim != 2 or pts.shape[1] < 3:
             raise ValueError(f'points must be an (N, >=3) array, got shape {pts.shape}')
@@ -482,10 +488,23 @@ class GroundSegmenter:
             threshold = np.minimum(p.ground_threshold_m + p.ground_threshold_std_factor * std,
                                    p.max_threshold_m)
         else:
-            threshold = min(p.ground_threshold_m, p.max_threshold_m)
-        ground[valid_index] = z - z_hat <= threshold
-        height[valid_index] = z_hat
+            threshold = p.ground_threshold_m  # validate(): never above max_threshold_m
+        ground_v = z - z_hat <= threshold
         timings['label'] = (time.perf_counter() - t) * 1e3
+
+        feet = None
+        if p.use_vertical_structure_test:
+            t = time.perf_counter()
+            feet = vertical_structure_mask(
+                x, y, z, z_hat, ground_v, cell_m=p.structure_cell_m,
+                cell_deg=p.structure_cell_deg, rise_m=p.structure_rise_m,
+                max_height_m=p.structure_max_height_m, step_m=p.structure_step_m,
+                r=grid.point_r)
+            ground_v &= ~feet
+            stats['structure_feet'] = int(np.count_nonzero(feet))
+            timings['structure'] = (time.perf_counter() - t) * 1e3
+        ground[valid_index] = ground_v
+        height[valid_index] = z_hat
         timings['total'] = (time.perf_counter() - t_start) * 1e3
 
         extra = None
@@ -494,7 +513,7 @@ class GroundSegmenter:
             extra = SegmentationDetails(
                 np.flatnonzero(valid), grid, lines, model.training, model.outliers,
                 np.where(grid.has_candidate, theta[1] * model.length_factor, np.nan), edges,
-                mean_full, std_full, threshold, model.gp, model.solution, d_star)
+                mean_full, std_full, threshold, model.gp, model.solution, d_star, feet)
         surface = _ground_surface(model, grid, edges, mean_full, std_full if need_std else None,
                                   xyz[:, 2], ground, height, valid_index)
         return SegmentationResult(ground, valid, height, self._theta, timings, stats, extra,

@@ -195,9 +195,9 @@ def diagnostics_status(window: ProcessingWindow, *, budget_ms: float, name: str 
     ``budget_ms``: processing budget per frame (ms); ``stale_after_s``: WARN when no input for
     this long (s; None disables, e.g. for offline replay); ``extra``: more key -> value pairs.
     Keys: ``<stage>_ms_mean|p95|max`` for stage in decode, grid, lines, gp_fit, predict, label,
-    encode, total (+ segment), ``input_rate_hz``, ``frames_*``, ``points_*`` (last frame),
-    ``sigma_f``/``gain``/``sigma_n``, each ``result.stats`` key (last frame) and, for integer
-    counters, ``<key>_window`` (sum over the window), ``budget_ms``, ``window_frames``,
+    structure, encode, total (+ segment), ``input_rate_hz``, ``frames_*``, ``points_*`` (last
+    frame), ``sigma_f``/``gain``/``sigma_n``, each ``result.stats`` key (last frame) and, for
+    integer counters, ``<key>_window`` (sum over the window), ``budget_ms``, ``window_frames``,
     ``last_error``.
     """
     from diagnostic_msgs.msg import DiagnosticStatus, KeyValue

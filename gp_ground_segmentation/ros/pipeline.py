@@ -36,7 +36,8 @@ HEIGHT_FIELD = 'height_above_ground'  # name of the optional per-point field (m)
 SURFACE_FIELDS = ('x', 'y', 'z', 'z_std')  # fields of the ground surface cloud (m)
 
 # Stages reported in diagnostics, in pipeline order (segmenter stages from result.timings_ms).
-STAGES = ('decode', 'grid', 'lines', 'gp_fit', 'predict', 'label', 'encode', 'total')
+STAGES = ('decode', 'grid', 'lines', 'gp_fit', 'predict', 'label', 'structure', 'encode',
+          'total')
 
 
 @dataclass

@@ -379,7 +379,8 @@ class FrameGP:
         if self.backend == 'numba' and sol.gradient is not None:  # a compiled solution
             shape = np.broadcast_shapes(np.shape(r_star), np.shape(d_star),
                                         (self.segments.size, 1))
-            r_star, d_star = (np.ascontiguousarray(np.broadcast_to(a, shape), dtype=np.float64)
+            # fresh writable copies: a read-only array is another numba signature to load
+            r_star, d_star = (np.broadcast_to(a, shape).astype(np.float64)
                               for a in (r_star, d_star))
             try:
                 mean, std = gp_compiled.predict_batched(

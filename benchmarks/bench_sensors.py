@@ -21,9 +21,12 @@ and, below a 1 m mount, a 0.3 m minimum range (as bench_quality). Timings are th
 p95) of ``--runs`` warm calls (default 30) after 3 untimed ones, the two methods interleaved
 call by call so that machine load hits both alike; the ratio is GP / Patchwork++ of the medians.
 
-First call: a fresh Python process per cloud imports the package, loads the cloud and times
-its first ``segment()`` (numba's on-disk cache as it is after this run's warm-up); and once
-with an empty, temporary ``NUMBA_CACHE_DIR``: the very first run on a new install.
+First call: a fresh Python process per cloud imports the package, loads the cloud, times
+``GroundSegmenter.warm_up()`` (loads the compiled functions from numba's on-disk cache, or
+compiles them; the node calls it before its first cloud) and then its first ``segment()`` (a
+cold start: theta learned from scratch) and second one. Every row but the last runs with
+numba's cache as this run left it; the last with an empty, temporary ``NUMBA_CACHE_DIR``: the
+very first run on a new install, which compiles (and fills that cache).
 """
 
 from __future__ import annotations
@@ -125,17 +128,20 @@ from gp_ground_segmentation import GroundSegmenter, SegmenterParams
 t_loaded = time.perf_counter()
 points = np.load({path!r})
 seg = GroundSegmenter(SegmenterParams())
+t_warm = time.perf_counter()
+seg.warm_up()
 t0 = time.perf_counter()
 seg.segment(points)
 t1 = time.perf_counter()
 seg.segment(points)
 t2 = time.perf_counter()
-print(json.dumps({{'import_s': t_loaded - t_import, 'first_s': t1 - t0, 'second_s': t2 - t1}}))
+print(json.dumps({{'import_s': t_loaded - t_import, 'warm_up_s': t0 - t_warm,
+                  'first_s': t1 - t0, 'second_s': t2 - t1}}))
 '''
 
 
 def first_call(points: np.ndarray, cache_dir: str | None = None) -> dict:
-    """First and second segment() (s) and the package import time of a fresh process."""
+    """Package import, warm_up(), first and second segment() (s) of a fresh process."""
     with tempfile.TemporaryDirectory() as tmp:
         path = os.path.join(tmp, 'cloud.npy')
         np.save(path, points)
@@ -184,24 +190,23 @@ def main(argv=None):
             common.markdown_table(headers, rows)]
 
     if not args.no_first_call:
-        for name, kind, pts, _ in clouds:
-            fc = first_call(pts)
-            first_rows.append([name, f'{len(pts):,}', common.fmt(fc['import_s'] * 1e3, 0),
-                               common.fmt(fc['first_s'] * 1e3, 1),
-                               common.fmt(fc['second_s'] * 1e3, 1)])
+        runs = [(name, pts, None) for name, _, pts, _ in clouds]
+        empty_cache = tempfile.TemporaryDirectory()
+        runs.append((f'{clouds[0][0]}, empty NUMBA_CACHE_DIR (new install)', clouds[0][2],
+                     empty_cache.name))
+        for name, pts, cache_dir in runs:
+            fc = first_call(pts, cache_dir)
+            keys = ('import_s', 'warm_up_s', 'first_s', 'second_s')
+            first_rows.append([name, f'{len(pts):,}'] + [common.fmt(fc[k] * 1e3, 1)
+                                                         for k in keys])
             print('first call', ' | '.join(first_rows[-1]), flush=True)
-        with tempfile.TemporaryDirectory() as empty_cache:
-            name, _, pts, _ = clouds[0]
-            fc = first_call(pts, cache_dir=empty_cache)
-            first_rows.append([f'{name}, empty NUMBA_CACHE_DIR (new install)', f'{len(pts):,}',
-                               common.fmt(fc['import_s'] * 1e3, 0),
-                               common.fmt(fc['first_s'] * 1e3, 1),
-                               common.fmt(fc['second_s'] * 1e3, 1)])
-            print('first call', ' | '.join(first_rows[-1]), flush=True)
-        text += ['', 'First calls of a fresh process (`python -c`, one per row): numba\'s '
-                 'on-disk cache as this run left it, except the last row.', '',
-                 common.markdown_table(['cloud', 'points', 'import ms', 'first segment() ms',
-                                        'second segment() ms'], first_rows)]
+        empty_cache.cleanup()
+        text += ['', 'Fresh processes (`python -c`, one per row): numba\'s on-disk cache as this '
+                 'run left it, except the last row (empty cache: compiles). First segment() '
+                 '= cold start (up to 40 likelihood evaluations).', '',
+                 common.markdown_table(['cloud', 'points', 'import ms', 'warm_up() ms',
+                                        'first segment() ms', 'second segment() ms'],
+                                       first_rows)]
     text = '\n'.join(text)
     print(text)
     if not args.no_write:

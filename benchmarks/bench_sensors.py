@@ -184,7 +184,8 @@ def main(argv=None):
     headers = ['cloud', 'kind', 'points', 'GP median ms', 'GP p95 ms', 'Patchwork++ median ms',
                'GP / PW++', 'stages ms: grid / lines / gp_fit / predict / label',
                'GP training points', 'GP ground %']
-    text = [common.machine_markdown(common.command_line()), '',
+    text = ['## Every sensor: this project vs Patchwork++ per scan (`bench_sensors.py`)', '',
+            common.machine_markdown(common.command_line()), '',
             f'Warm calls: median of {args.runs} after 3 untimed, GP and Patchwork++ '
             'interleaved call by call in one process; (N, 3) float32 input to both.', '',
             common.markdown_table(headers, rows)]

@@ -108,7 +108,7 @@ class GPSolution:
     a_inv: np.ndarray  # (S, n, n)
     lml: float  # J(theta)
     jitter: float  # diagonal jitter that had to be added (m^2), 0 if none
-    kernel: np.ndarray  # (S, n, n) K at theta (padded slots 0)
+    kernel: Optional[np.ndarray]  # (S, n, n) K at theta (padded slots 0); None when compiled
     gradient: Optional[np.ndarray] = None  # (3,) dJ/dlog(theta) when the solver gave it
 
 
@@ -256,7 +256,7 @@ class FrameGP:
     def _solve_compiled(self, theta) -> Optional[GPSolution]:
         """The whole step in numba; None when a matrix is not PD or numba fails (then numpy)."""
         try:
-            ok, logdets, alpha, a_inv, k, gradient = gp_compiled.solve_batched(
+            ok, logdets, alpha, a_inv, gradient = gp_compiled.solve_batched(
                 self.r, self.d, self.z, self.noise_var, self.counts, *(float(t) for t in theta))
         except Exception as exc:  # noqa: BLE001 - numba compile/runtime failure
             self.backend, self.compiled_error = 'numpy', str(exc)  # numpy from now on
@@ -264,7 +264,7 @@ class FrameGP:
         if not ok.all():
             return None
         logdet = float(logdets.sum())
-        return GPSolution(theta, alpha, a_inv, self._lml(logdet, alpha), 0.0, k, gradient)
+        return GPSolution(theta, alpha, a_inv, self._lml(logdet, alpha), 0.0, None, gradient)
 
     def _solve_numpy(self, theta) -> GPSolution:
         """The numpy reference (and fallback): stacked factorisation of the padded batch."""

@@ -36,9 +36,9 @@ def _solve_batched(r, d, z, noise_var, counts, sigma_f, gain, sigma_n):
     """Factorise A_s = K_s + diag(sigma_n^2 + noise_var) of every segment s at theta.
 
     r, d, z, noise_var: (S, n) padded training data, the first ``counts[s]`` slots of row s
-    valid. Returns (ok (S,), logdet (S,), alpha (S, n), a_inv (S, n, n), kernel (S, n, n),
-    gradient (3,)) where ``gradient`` is dJ/dlog(sigma_f, a, sigma_n) without the data-fit
-    sign conventions changed: 1/2 tr((alpha alpha^T - A^-1) dA/dlog theta). ``ok[s]`` is False
+    valid. Returns (ok (S,), logdet (S,), alpha (S, n), a_inv (S, n, n), gradient (3,)) where
+    ``gradient`` is dJ/dlog(sigma_f, a, sigma_n) summed over the segments:
+    1/2 tr((alpha alpha^T - A^-1) dA/dlog theta). K is not kept. ``ok[s]`` is False
     when Cholesky meets a non-positive pivot; then that segment's outputs are meaningless and
     the caller falls back to jittered numpy.
     """
@@ -46,8 +46,8 @@ def _solve_batched(r, d, z, noise_var, counts, sigma_f, gain, sigma_n):
     logdet = np.zeros(s_count)
     alpha = np.zeros((s_count, n))
     a_inv = np.zeros((s_count, n, n))
-    kernel = np.zeros((s_count, n, n))
     ok = np.ones(s_count, dtype=np.bool_)
+    k = np.zeros((n, n))  # K and q of the current segment: scratch, not kept
     q = np.zeros((n, n))
     lower = np.zeros((n, n))
     inv_lower = np.zeros((n, n))
@@ -59,7 +59,6 @@ def _solve_batched(r, d, z, noise_var, counts, sigma_f, gain, sigma_n):
     g_sn = 0.0
     for s in range(s_count):
         m = counts[s]
-        k = kernel[s]
         ainv = a_inv[s]
         for i in range(m, n):
             ainv[i, i] = 1.0  # padded slots: identity rows, as in the numpy reference
@@ -119,7 +118,7 @@ def _solve_batched(r, d, z, noise_var, counts, sigma_f, gain, sigma_n):
                 g_gain += wk * q[i, j]
             g_sn += ai * ai - ainv[i, i]
     gradient = np.array([g_sf, g_gain * inv_gain2, g_sn * sn2])
-    return ok, logdet, alpha, a_inv, kernel, gradient
+    return ok, logdet, alpha, a_inv, gradient
 
 
 def _predict_batched(r, d, counts, alpha, a_inv, r_star, d_star, sigma_f, gain, with_std):
@@ -172,7 +171,7 @@ def warm_up() -> None:
     if AVAILABLE:
         one = np.ones((1, 2))
         counts = np.array([2], dtype=np.intp)
-        ok, _, alpha, a_inv, _, _ = solve_batched(np.array([[0.0, 1.0]]), one, one, one * 0.0,
-                                                  counts, 1.0, 1.0, 0.1)
+        _, _, alpha, a_inv, _ = solve_batched(np.array([[0.0, 1.0]]), one, one, one * 0.0,
+                                              counts, 1.0, 1.0, 0.1)
         predict_batched(np.array([[0.0, 1.0]]), one, counts, alpha, a_inv, one, one, 1.0, 1.0,
                         True)

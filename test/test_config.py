@@ -52,7 +52,8 @@ def test_load_shipped_file_gives_defaults():
     assert seg == SegmenterParams()
     assert node == node_param_defaults()
     assert node == {'processing_budget_ms': 100.0, 'queue_size': 1, 'diagnostics_period_s': 1.0,
-                    'diagnostics_window': 50}
+                    'diagnostics_window': 50, 'publish_ground_surface': True,
+                    'add_height_above_ground_field': False}
 
 
 @pytest.mark.parametrize('key', ['ground_segmentation', '/ground_segmentation', '/**',

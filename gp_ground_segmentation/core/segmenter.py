@@ -60,6 +60,7 @@ from .gp import FrameGP, GPSolution, GroundAnchor, length_scale_factors, resolve
 from .grid import RadialGrid, build_grid, relative_density
 from .lines import LineSegments, extract_lines
 from .params import SegmenterParams
+from .surface import GroundSurface, ground_offsets
 
 _OUTLIER_NOISE_VAR = 1e4  # m^2: a rejected candidate's noise variance (std 100 m)
 _blas = None  # threadpoolctl controller, made on first use (after scipy has loaded its BLAS)
@@ -120,6 +121,17 @@ class SegmentationResult:
     timings_ms: dict = field(default_factory=dict)  # stage -> milliseconds, plus 'total'
     stats: dict = field(default_factory=dict)  # counters: candidates, cholesky fallbacks, ...
     details: Optional[SegmentationDetails] = None
+    # The GP ground surface of the frame (surface.py); its extras are computed on first read.
+    ground_surface: Optional[GroundSurface] = None
+    # z of the points as given to segment() (a view, not a copy), for height_above_ground
+    point_z: Optional[np.ndarray] = field(default=None, repr=False)
+
+    @property
+    def height_above_ground(self) -> np.ndarray:
+        """float64 (N,): z - ground_height of every point (m); NaN for invalid points."""
+        if self.point_z is None:
+            raise ValueError('height_above_ground: the result carries no point z')
+        return self.point_z.astype(np.float64) - self.ground_height
 
     @property
     def obstacle_mask(self) -> np.ndarray:
@@ -151,16 +163,14 @@ class _GroundModel(NamedTuple):
     default_height: float  # ground height of segments without a training point (m)
 
 
-def _ground_at_bin_edges(model: _GroundModel, grid: RadialGrid, need_std: bool):
-    """GP posterior mean (and std) at the N + 1 bin edges of every segment (stage ``predict``).
+def _ground_at_bin_edges(model: _GroundModel, edges: np.ndarray, need_std: bool):
+    """GP posterior mean (and std) at the (M, N + 1) bin ``edges`` (stage ``predict``).
 
     Segments outside the GP batch keep ``model.default_height`` and the prior std sigma_f.
-    Returns (edges, mean, std, d at the edges of the GP's segments) with (M, N + 1) arrays.
+    Returns (mean, std, d at the edges of the GP's segments) with (M, N + 1) arrays.
     """
-    m_count, n_bins = grid.num_segments, grid.num_bins
-    edges = grid.bin_edges()
-    mean = np.full((m_count, n_bins + 1), model.default_height)
-    std = np.full((m_count, n_bins + 1), model.theta[0])
+    mean = np.full(edges.shape, model.default_height)
+    std = np.full(edges.shape, model.theta[0])
     d_star = None
     if model.solution is not None:
         rows = model.gp.segments
@@ -170,7 +180,33 @@ def _ground_at_bin_edges(model: _GroundModel, grid: RadialGrid, need_std: bool):
         mean[rows] = mean_b
         if need_std:
             std[rows] = std_b
-    return edges, mean, std, d_star
+    return mean, std, d_star
+
+
+def _ground_surface(model: _GroundModel, grid: RadialGrid, edges, mean, std, point_z, ground,
+                    ground_height, valid_index) -> GroundSurface:
+    """The frame's GroundSurface; ``std`` None: its z_std is computed when first read.
+
+    The deferred computations keep the model, the edges, the (N,) result arrays and the points'
+    grid cells alive, not the rest of the per-point grid.
+    """
+    point_segment, point_bin = grid.point_segment, grid.point_bin  # over the valid points
+    m_count, n_bins = grid.num_segments, grid.num_bins
+
+    def compute_std():
+        with _single_threaded_blas(), np.errstate(over='ignore'):
+            return _ground_at_bin_edges(model, edges, need_std=True)[1]
+
+    def compute_offset():
+        on_ground = ground[valid_index]
+        residual = (point_z[valid_index][on_ground].astype(np.float64)
+                    - ground_height[valid_index][on_ground])
+        return ground_offsets(residual, point_segment[on_ground], point_bin[on_ground], m_count,
+                              n_bins, model.theta[2])
+
+    return GroundSurface(grid.segment_r_min, grid.bin_width, grid.count.sum(axis=1) > 0, mean,
+                         model.training.any(axis=1), std,
+                         compute_std if std is None else None, compute_offset)
 
 
 def _interpolate_at_points(values: np.ndarray, grid: RadialGrid) -> np.ndarray:
@@ -412,7 +448,10 @@ class GroundSegmenter:
         height = np.full(n_points, np.nan)
         if n_valid == 0:
             timings['total'] = (time.perf_counter() - t_start) * 1e3
-            return SegmentationResult(ground, valid, height, self._theta, timings, stats)
+            return SegmentationResult(ground, valid, height, self._theta, timings, stats,
+                                      ground_surface=GroundSurface.empty(p.num_segments,
+                                                                         p.num_bins),
+                                      point_z=xyz[:, 2])
         xyz_v = xyz if all_valid else xyz[valid_index]
         x, y, z = (np.ascontiguousarray(xyz_v[:, i]) for i in range(3))
         del xyz_v
@@ -437,7 +476,8 @@ class GroundSegmenter:
 
         t = time.perf_counter()
         need_std = details or p.ground_threshold_std_factor > 0
-        edges, mean_full, std_full, d_star = _ground_at_bin_edges(model, grid, need_std)
+        edges = grid.bin_edges()
+        mean_full, std_full, d_star = _ground_at_bin_edges(model, edges, need_std)
         timings['predict'] = (time.perf_counter() - t) * 1e3
 
         t = time.perf_counter()
@@ -460,4 +500,7 @@ class GroundSegmenter:
                 np.flatnonzero(valid), grid, lines, model.training, model.outliers,
                 np.where(grid.has_candidate, theta[1] * model.length_factor, np.nan), edges,
                 mean_full, std_full, threshold, model.gp, model.solution, d_star)
-        return SegmentationResult(ground, valid, height, self._theta, timings, stats, extra)
+        surface = _ground_surface(model, grid, edges, mean_full, std_full if need_std else None,
+                                  xyz[:, 2], ground, height, valid_index)
+        return SegmentationResult(ground, valid, height, self._theta, timings, stats, extra,
+                                  surface, xyz[:, 2])

@@ -359,3 +359,37 @@ def make_cloud(header, points, msg_type=None):
     else:
         msg.is_dense = False
     return msg
+
+
+def with_float32_field(msg, name, values):
+    """A copy of the unorganized cloud ``msg`` with a FLOAT32 field ``name`` appended per point.
+
+    The new field sits after every existing byte (offset = old point_step), in the cloud's byte
+    order; every original field keeps its offset and bytes. ``values``: (width,) numbers.
+    Raises CloudFormatError when the cloud already has a field of that name or is organized.
+    """
+    if any(f.name == name for f in msg.fields):
+        raise CloudFormatError(f"cloud already has a field named '{name}'")
+    if int(msg.height) > 1:
+        raise CloudFormatError(f'expected an unorganized cloud (height 1), got {msg.height}')
+    rows = point_rows(msg)
+    n, step = rows.shape
+    values = np.asarray(values)
+    if values.shape != (n,):
+        raise ValueError(f"field '{name}': {values.shape} values for {n} points")
+    packed = np.empty(n, dtype=np.dtype([('point', np.void, step),
+                                         ('value', '>f4' if msg.is_bigendian else '<f4')]))
+    packed['point'] = np.ascontiguousarray(rows).view(np.dtype((np.void, step))).reshape(n)
+    packed['value'] = values
+    out = type(msg)()
+    out.header = _copy_header(msg.header)
+    out.height = 1
+    out.width = n
+    out.fields = _copy_fields(msg.fields) + [
+        _field_class(type(msg))(name=name, offset=step, datatype=7, count=1)]
+    out.is_bigendian = bool(msg.is_bigendian)
+    out.point_step = step + 4
+    out.row_step = n * (step + 4)
+    out.data = _u8_array(packed.view(np.uint8))
+    out.is_dense = bool(msg.is_dense)
+    return out

@@ -23,7 +23,8 @@ from ..core.params import SegmenterParams, describe_params, value_problem
 
 __all__ = ['NODE_NAME', 'NODE_PARAMS', 'ParameterConfigError', 'all_param_specs',
            'check_param_value', 'describe_node_params', 'is_ros_builtin', 'load_params_file',
-           'node_param_defaults', 'render_params_table', 'render_params_yaml', 'split_params',
+           'node_param_defaults', 'render_param_overrides', 'render_params_table',
+           'render_params_yaml', 'split_params',
            'validate_node_params']
 
 NODE_NAME = 'ground_segmentation'
@@ -45,6 +46,17 @@ NODE_PARAMS = {
         'default': 50, 'type': 'int', 'min': 1, 'max': 100000, 'read_only': False,
         'description': 'number of most recent frames over which timings (mean/p95/max), '
                        'input rate and drops are reported (frames)'},
+    'publish_ground_surface': {
+        'default': True, 'type': 'bool', 'read_only': False,
+        'description': 'publish the GP ground surface on ground_surface: PointCloud2 x, y, z, '
+                       'z_std (FLOAT32, m) at the bin edges of every segment with ground '
+                       'candidates; z_std is the posterior std of the ground height itself '
+                       '(without sensor noise)'},
+    'add_height_above_ground_field': {
+        'default': False, 'type': 'bool', 'read_only': False,
+        'description': 'append a FLOAT32 height_above_ground field (z - predicted ground '
+                       'height, m) to the ground and obstacle clouds; off keeps them '
+                       'byte-for-byte copies of the input points'},
 }
 
 # Parameters every rclpy node has or may get from rclpy itself; a params file may set them.
@@ -263,6 +275,18 @@ def render_params_yaml(node_name: str = NODE_NAME) -> str:
             comment = f"{row['description']}; {row['type']}{_range_text(row)}{ro}"
             lines.extend('    # ' + part for part in textwrap.wrap(comment, 94))
             lines.append(f"    {row['name']}: {_yaml_scalar(row['default'])}")
+    return '\n'.join(lines) + '\n'
+
+
+def render_param_overrides(values: dict, header_lines=(), node_name: str = NODE_NAME) -> str:
+    """A parameter file with only ``values`` (checked like load_params_file), in the layout of
+    config/params.yaml, under a comment header (e.g. what a tuner tuned on)."""
+    specs = all_param_specs()
+    for name, value in values.items():
+        check_param_value(name, value, specs)
+    lines = ['# ' + part for text in header_lines for part in textwrap.wrap(text, 96)]
+    lines += [f'{node_name}:', '  ros__parameters:' + ('' if values else ' {}')]
+    lines += [f'    {name}: {_yaml_scalar(value)}' for name, value in values.items()]
     return '\n'.join(lines) + '\n'
 
 

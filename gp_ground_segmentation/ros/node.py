@@ -18,11 +18,16 @@ Topics (relative names; remap e.g. ``-r points:=/velodyne_points``):
              a RELIABLE subscriber would receive nothing from best-effort LiDAR drivers.
   ground     (pub) sensor_msgs/PointCloud2, RELIABLE, VOLATILE, keep last 1.
   obstacles  (pub) same QoS as ground.
+  ground_surface (pub) same QoS: the GP ground surface, PointCloud2 x, y, z, z_std (FLOAT32, m;
+             z = GP mean + ground offset, z_std = posterior std of the latent ground height
+             without sensor noise; core/surface.py) at the bin edges
+             of every segment with ground candidates, input header; only while
+             ``publish_ground_surface`` is true.
   /diagnostics (pub) diagnostic_msgs/DiagnosticArray, every diagnostics_period_s.
 Output QoS: a RELIABLE publisher matches both RELIABLE subscribers (RViz's and ros2 bag record's
 default) and BEST_EFFORT ones, whereas a BEST_EFFORT publisher is invisible to RELIABLE
 subscribers; depth 1 keeps the latest-wins rule downstream (a slow subscriber never makes us
-buffer old clouds); VOLATILE so no stale cloud is replayed to late joiners. All three topics
+buffer old clouds); VOLATILE so no stale cloud is replayed to late joiners. All the topics
 accept ``qos_overrides`` (history, depth, reliability) from the parameter file.
 
 Parameters: every ``SegmenterParams`` field and the node-only ones of ``config.NODE_PARAMS`` are
@@ -59,10 +64,13 @@ from .config import (NODE_NAME, NODE_PARAMS, ParameterConfigError, all_param_spe
                      check_param_value, is_ros_builtin, split_params)
 from .diagnostics import ProcessingWindow, diagnostics_array, diagnostics_status
 from ..core.params import SegmenterParams
-from .pipeline import process_cloud
+from .pipeline import OUTPUT_SWITCHES, process_cloud
 from ..core.segmenter import GroundSegmenter
 
-__all__ = ['GroundSegmentationNode', 'OUTPUT_QOS', 'main']
+__all__ = ['GroundSegmentationNode', 'INPUT_TOPIC', 'OUTPUT_QOS', 'OUTPUT_TOPICS', 'main']
+
+INPUT_TOPIC = 'points'  # relative names: remap them
+OUTPUT_TOPICS = ('ground', 'obstacles', 'ground_surface')
 
 OUTPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                         reliability=ReliabilityPolicy.RELIABLE,
@@ -166,6 +174,7 @@ class GroundSegmentationNode(Node):
         self._budget_ms = float(node_values['processing_budget_ms'])
         self._diag_period_s = float(node_values['diagnostics_period_s'])
         queue_size = int(node_values['queue_size'])
+        self._outputs = {name: bool(node_values[name]) for name in OUTPUT_SWITCHES}
 
         self.window = ProcessingWindow(int(node_values['diagnostics_window']))
         self._segmenter = self._segmenter_factory(self._declared_params)
@@ -173,15 +182,14 @@ class GroundSegmentationNode(Node):
         self._cond = threading.Condition()
         self._slot = deque(maxlen=queue_size)
 
-        self._pub_ground = self.create_publisher(
-            PointCloud2, 'ground', OUTPUT_QOS,
-            qos_overriding_options=QoSOverridingOptions.with_default_policies())
-        self._pub_obstacles = self.create_publisher(
-            PointCloud2, 'obstacles', OUTPUT_QOS,
-            qos_overriding_options=QoSOverridingOptions.with_default_policies())
+        self._pub_ground, self._pub_obstacles, self._pub_surface = (
+            self.create_publisher(
+                PointCloud2, topic, OUTPUT_QOS,
+                qos_overriding_options=QoSOverridingOptions.with_default_policies())
+            for topic in OUTPUT_TOPICS)
         self._pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', DIAGNOSTICS_QOS)
         self._sub = self.create_subscription(
-            PointCloud2, 'points', self._on_cloud, qos_profile_sensor_data,
+            PointCloud2, INPUT_TOPIC, self._on_cloud, qos_profile_sensor_data,
             qos_overriding_options=QoSOverridingOptions.with_default_policies())
         self._diag_timer = self.create_timer(self._diag_period_s, self._on_diag_timer)
 
@@ -192,8 +200,9 @@ class GroundSegmentationNode(Node):
                                         daemon=True)
         self._worker.start()
         self.get_logger().info(
-            f"listening on '{self._sub.topic_name}', publishing '{self._pub_ground.topic_name}'"
-            f" and '{self._pub_obstacles.topic_name}' (slot {queue_size}, budget "
+            f"listening on '{self._sub.topic_name}', publishing '{self._pub_ground.topic_name}',"
+            f" '{self._pub_obstacles.topic_name}' and '{self._pub_surface.topic_name}' (slot "
+            f'{queue_size}, budget '
             f'{self._budget_ms:g} ms)')
 
     # --- public state (read-only views, for tests and tools) --------------------------------
@@ -308,7 +317,7 @@ class GroundSegmentationNode(Node):
         frame_id = None
         try:
             frame_id = msg.header.frame_id
-            out = process_cloud(msg, self._segmenter)
+            out = process_cloud(msg, self._segmenter, **self._outputs)
             notes = list(out.warnings)
             try:
                 notes += self._stream_warnings(msg)
@@ -317,6 +326,8 @@ class GroundSegmentationNode(Node):
                 notes.append(f'input check failed: {_one_line(exc)}')
             self._pub_ground.publish(out.ground)
             self._pub_obstacles.publish(out.obstacles)
+            if out.surface is not None:
+                self._pub_surface.publish(out.surface)
             self.window.record_frame(out, frame_id, notes)
             for note in notes:
                 self._log_throttled('warning',
@@ -377,6 +388,9 @@ class GroundSegmentationNode(Node):
                 self._declared_params = self._declared_params.replace(**seg)
                 with self._cond:
                     self._pending_params = self._declared_params
+            # a new dict, not an update: the worker reads the old one whole or the new one
+            self._outputs = dict(self._outputs, **{name: bool(node[name])
+                                                   for name in OUTPUT_SWITCHES if name in node})
             if 'processing_budget_ms' in node:
                 self._budget_ms = float(node['processing_budget_ms'])
             if 'diagnostics_window' in node:

@@ -1,6 +1,7 @@
 # SPDX-License-Identifier: Apache-2.0
 """Offline bag replay: read PointCloud2 frames from a bag (or point files), segment them with the
-node's own pipeline, and write a ROS 2 bag with ``<topic>/ground``, ``<topic>/obstacles`` and
+node's own pipeline, and write a ROS 2 bag with ``<topic>/ground``, ``<topic>/obstacles``,
+``<topic>/ground_surface`` (when ``publish_ground_surface`` is on, the default) and
 ``/diagnostics``.
 
 Reading and writing use ``rosbags`` (AnyReader: ROS 2 mcap/sqlite3 directories or bare
@@ -458,7 +459,10 @@ def replay(inputs: Sequence, out_bag, *, topic: Optional[str] = None,
 
     ``inputs``: one bag (directory, .mcap, .db3, or ROS 1 .bag files) or point files / a directory
     of them. Output topics: ``<topic>/ground``, ``<topic>/obstacles`` (input header and all fields
-    kept, points byte for byte) and ``/diagnostics`` (one DiagnosticArray per frame), each written
+    kept, points byte for byte, plus a ``height_above_ground`` field when the parameter file's
+    ``add_height_above_ground_field`` is true), ``<topic>/ground_surface`` (the GP ground surface,
+    unless ``publish_ground_surface`` is false) and ``/diagnostics`` (one DiagnosticArray per
+    frame), each written
     at the input message's bag time. A frame the pipeline rejects (malformed cloud) is skipped,
     counted and reported with an ERROR diagnostics entry, as the node does. Raises BagError.
     """
@@ -467,6 +471,7 @@ def replay(inputs: Sequence, out_bag, *, topic: Optional[str] = None,
     from rosbags.typesys import Stores, get_typestore
 
     from ..ros.diagnostics import ProcessingWindow
+    from ..ros.pipeline import OUTPUT_SWITCHES
     from ..core.segmenter import GroundSegmenter
 
     out = Path(out_bag)
@@ -477,6 +482,7 @@ def replay(inputs: Sequence, out_bag, *, topic: Optional[str] = None,
     segmenter = GroundSegmenter(seg_params)
     window = ProcessingWindow(int(node_params.get('diagnostics_window', 50)))
     budget_ms = float(node_params.get('processing_budget_ms', 100.0))
+    outputs = {name: bool(node_params[name]) for name in OUTPUT_SWITCHES}
     summary = ReplaySummary(output=str(out))
     t_start = time.perf_counter()
     with FrameSource(inputs, topic, max_frames) as source:
@@ -499,10 +505,14 @@ def replay(inputs: Sequence, out_bag, *, topic: Optional[str] = None,
                                                   typestore=typestore)
                 conn_diag = writer.add_connection(DIAGNOSTICS_TOPIC, DIAGNOSTIC_ARRAY,
                                                   typestore=typestore)
-                conns = (conn_ground, conn_obst, conn_diag)
+                conn_surface = None
+                if outputs['publish_ground_surface']:
+                    conn_surface = writer.add_connection(f'{source.topic}/ground_surface',
+                                                         POINTCLOUD2, typestore=typestore)
+                conns = (conn_ground, conn_obst, conn_diag, conn_surface)
                 for frame in source:
                     _replay_frame(frame, segmenter, writer, conns, summary, window, budget_ms,
-                                  serialize_message)
+                                  serialize_message, outputs)
                     progress.update(frame.index + 1)
             if summary.frames == 0:
                 raise BagError(f'none of the {summary.skipped} frame(s) could be segmented: '
@@ -519,13 +529,14 @@ def replay(inputs: Sequence, out_bag, *, topic: Optional[str] = None,
 
 
 def _replay_frame(frame, segmenter, writer, conns, summary, window, budget_ms,
-                  serialize_message) -> None:
-    """Segment one frame, write its two clouds and a DiagnosticArray built like the node's."""
+                  serialize_message, outputs) -> None:
+    """Segment one frame, write its clouds and a DiagnosticArray built like the node's;
+    ``outputs``: the node's output switches (keywords of ``process_cloud``)."""
     from ..ros.cloud import CloudFormatError
     from ..ros.diagnostics import diagnostics_array, diagnostics_status
     from ..ros.pipeline import frame_timings, process_cloud
 
-    conn_ground, conn_obst, conn_diag = conns
+    conn_ground, conn_obst, conn_diag, conn_surface = conns
     msg = frame.msg
     frame_id = msg.header.frame_id
     t0 = time.perf_counter()
@@ -533,7 +544,7 @@ def _replay_frame(frame, segmenter, writer, conns, summary, window, budget_ms,
     bag_time_s = frame.timestamp_ns * 1e-9
     window.record_received(frame_id, now=bag_time_s)  # input rate in bag time, not wall time
     try:
-        out = process_cloud(msg, segmenter)
+        out = process_cloud(msg, segmenter, **outputs)
     except (CloudFormatError, ValueError, RuntimeError) as err:  # the node drops these too
         text = _one_line(err)
         window.record_failure(text, isinstance(err, ValueError), frame_id)
@@ -545,6 +556,8 @@ def _replay_frame(frame, segmenter, writer, conns, summary, window, budget_ms,
         window.record_frame(out, frame_id)
         writer.write(conn_ground, frame.timestamp_ns, serialize_message(out.ground))
         writer.write(conn_obst, frame.timestamp_ns, serialize_message(out.obstacles))
+        if conn_surface is not None and out.surface is not None:
+            writer.write(conn_surface, frame.timestamp_ns, serialize_message(out.surface))
     status = diagnostics_status(window, budget_ms=budget_ms, stale_after_s=None, now=bag_time_s,
                                 extra={'source': 'gp-ground-seg replay', 'frame_index':
                                        frame.index})

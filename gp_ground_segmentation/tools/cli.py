@@ -9,6 +9,9 @@ Subcommands:
   and /diagnostics out, using the node's pipeline and parameter file.
 * ``plot FRAME``       side view of one angular segment + bird's-eye view of the frame (PNG).
 * ``make-sample``      re-write the first frames of a bag as a small compressed mcap (data/).
+* ``batch IN... --out DIR``  replay many inputs, in-process or on Dask (tools/batch.py).
+* ``tune FRAME... --out params.yaml``  Optuna search of parameters on labelled scans
+  (tools/tune.py).
 
 Every expected failure prints one line ``gp-ground-seg <cmd>: error: ...`` on stderr and exits
 with status 2; there is no traceback for bad input.
@@ -271,6 +274,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--frames', type=int, default=3)
     p.add_argument('--topic', default='/velodyne_points')
     p.set_defaults(func=cmd_make_sample)
+
+    from . import batch, tune  # their own modules; optional Dask/Optuna load only when run
+    batch.add_parser(sub)
+    tune.add_parser(sub)
     return parser
 
 

@@ -22,6 +22,14 @@ GROUND_CLASSES = (40, 44, 48, 49, 60, 72)
 IGNORED_CLASSES = (0, 1)
 VEGETATION_CLASS = 70
 
+# Label ontologies by data set: name -> (ground classes, ignored classes). RELLIS-3D ground is
+# dirt 1, grass 3, asphalt 10, concrete 23, puddle 31, mud 33; void 0 (which also holds every
+# no-return point) is left out.
+DATASET_CLASSES = {
+    'semantickitti': (GROUND_CLASSES, IGNORED_CLASSES),
+    'rellis3d': ((1, 3, 10, 23, 31, 33), (0,)),
+}
+
 
 def semantic_classes(labels: np.ndarray) -> np.ndarray:
     """Semantic class of SemanticKITTI labels: the low 16 bits (the high 16 hold the instance)."""
@@ -31,11 +39,15 @@ def semantic_classes(labels: np.ndarray) -> np.ndarray:
 def ground_truth_from_labels(semantic_labels: np.ndarray, vegetation_is_ground: bool = False
                              ) -> tuple[np.ndarray, np.ndarray]:
     """(truth_ground, evaluated) boolean masks from raw .label values or semantic classes."""
-    classes = semantic_classes(semantic_labels)
     ground_classes = GROUND_CLASSES + ((VEGETATION_CLASS,) if vegetation_is_ground else ())
-    truth = np.isin(classes, ground_classes)
-    evaluated = ~np.isin(classes, IGNORED_CLASSES)
-    return truth, evaluated
+    return labelled_ground_truth(semantic_labels, ground_classes, IGNORED_CLASSES)
+
+
+def labelled_ground_truth(labels: np.ndarray, ground_classes, ignored_classes
+                          ) -> tuple[np.ndarray, np.ndarray]:
+    """(truth_ground, evaluated) masks of .label values for any ontology's class lists."""
+    classes = semantic_classes(labels)
+    return np.isin(classes, ground_classes), ~np.isin(classes, ignored_classes)
 
 
 def truth_metrics(pred_ground_mask: np.ndarray, truth_ground_mask: np.ndarray,

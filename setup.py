@@ -32,7 +32,7 @@ setup(
         'numpy',
         'scipy',
         'threadpoolctl',  # segmenter.py caps BLAS threads per call
-        'numba',  # compiled batched SPD inverse (gp_compiled.py): gp_fit 14 -> 8 ms
+        'numba',  # the compiled GP step (gp_compiled.py), each segment at its own size
         'PyYAML',  # config.load_params_file
         'rosbags',
         'ros-jazzy-rclpy[fastrtps]',

@@ -102,9 +102,19 @@ def test_organized_cloud_with_row_padding():
 def test_same_split_as_the_segmenter_on_xyz():
     xyz = _scene(seed=3)
     msg = _msg(xyz.astype(np.float32))
-    out = process_cloud(msg, GroundSegmenter(SegmenterParams()))
-    direct = GroundSegmenter(SegmenterParams()).segment(xyz.astype(np.float32).astype(np.float64))
-    assert np.array_equal(out.result.ground_mask, direct.ground_mask)
+    seen = []
+
+    class Spy(GroundSegmenter):
+        def segment(self, points, details=False):
+            seen.append(points.dtype)
+            return super().segment(points, details)
+    spy = Spy(SegmenterParams())
+    out = process_cloud(msg, spy)
+    assert seen == [np.float32]  # float32 fields reach the segmenter as float32
+    direct = GroundSegmenter(SegmenterParams())
+    direct_result = direct.segment(xyz.astype(np.float32).astype(np.float64))
+    assert np.array_equal(out.result.ground_mask, direct_result.ground_mask)
+    assert spy.hyperparameters == direct.hyperparameters  # the same cold start
 
 
 def test_empty_cloud():

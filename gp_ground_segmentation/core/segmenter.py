@@ -276,7 +276,8 @@ class GroundSegmenter:
         return self._backend
 
     def warm_up(self) -> None:
-        """Compile (or load from numba's cache) the GP kernel now, not inside the first frame.
+        """Compile (or load from numba's cache) the GP step and the grid pass now, not inside
+        the first frame (see gp_compiled.py for where the cache lives).
 
         On failure this segmenter switches to numpy and the error is raised for the caller to
         report; segmenting still works.
@@ -287,6 +288,9 @@ class GroundSegmenter:
             except Exception:
                 self._backend = 'numpy'
                 raise
+            for dtype in (np.float32, np.float64):  # both input precisions of the grid pass
+                xyz = np.ones((3, 2), dtype=dtype)
+                build_grid(*xyz, 2, 2)
 
     @property
     def hyperparameters(self) -> Hyperparameters:
@@ -459,7 +463,8 @@ class GroundSegmenter:
         del xyz_v
 
         t = time.perf_counter()
-        grid = build_grid(x, y, z, p.num_segments, p.num_bins)
+        grid = build_grid(x, y, z, p.num_segments, p.num_bins,
+                          compiled=self._backend == 'numba')
         timings['grid'] = (time.perf_counter() - t) * 1e3
 
         t = time.perf_counter()

@@ -44,8 +44,8 @@ import numpy as np
 
 from .grid import segment_of
 
-# Tolerance (in bins) of height_at's range test: r recomputed in float64 from float32 x, y can
-# land a hair outside the [r_min, r_max] the grid computed in float32 for the same point.
+# Tolerance (in bins) of height_at's range test: round-off between the grid's r and the one
+# recomputed here must not drop a point at r_min or r_max.
 _RANGE_TOLERANCE_BINS = 1e-4
 
 
@@ -163,8 +163,8 @@ class GroundSurface:
         the labels' ground height; NaN outside the grid's range (see the module docstring).
         """
         x, y = np.asarray(x), np.asarray(y)
-        # the segment in the points' own precision, as the grid found it (float32 and float64
-        # arctan2 disagree for points on a segment border)
+        # the segment as the grid found it: from the points' own values (float32 input stays
+        # float32 values), decided in float64 by segment_of
         angle_dtype = np.result_type(x.dtype, y.dtype, np.float32)
         shape = np.broadcast_shapes(x.shape, y.shape)
         x, y = (np.broadcast_to(v, shape).ravel().astype(angle_dtype) for v in (x, y))

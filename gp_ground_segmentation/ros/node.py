@@ -36,7 +36,10 @@ new segmenter parameters at the start of the next frame, never mid-frame.
 
 from __future__ import annotations
 
+import argparse
+import copy
 import re
+import signal
 import sys
 import threading
 import time
@@ -46,6 +49,7 @@ import rclpy
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
                                 ParameterType, SetParametersResult)
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.exceptions import ParameterException
 from rclpy.node import Node
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
@@ -56,7 +60,7 @@ from sensor_msgs.msg import PointCloud2
 
 from .cloud import CloudFormatError
 from .config import (NODE_NAME, NODE_PARAMS, ParameterConfigError, all_param_specs,
-                     check_param_value, split_params)
+                     check_param_value, load_params_file, split_params)
 from .diagnostics import ProcessingWindow, diagnostics_array, diagnostics_status
 from ..core import gp, gp_compiled
 from ..core.params import SegmenterParams
@@ -64,6 +68,8 @@ from .pipeline import process_cloud
 from ..core.segmenter import GroundSegmenter
 
 __all__ = ['GroundSegmentationNode', 'OUTPUT_QOS', 'main']
+
+RCLError = _rclpy.RCLError  # rcl failures, e.g. a parameter file it cannot parse
 
 OUTPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                         reliability=ReliabilityPolicy.RELIABLE,
@@ -176,15 +182,19 @@ class GroundSegmentationNode(Node):
         self._cond = threading.Condition()
         self._slot = deque(maxlen=queue_size)
 
+        # Each endpoint gets its own copy of its profile: with qos_overriding_options rclpy
+        # writes the overrides into the profile object it is given, so a shared module-level
+        # profile would carry a '/ground' override over to '/obstacles' (and to rclpy's
+        # global qos_profile_sensor_data).
         self._pub_ground = self.create_publisher(
-            PointCloud2, 'ground', OUTPUT_QOS,
+            PointCloud2, 'ground', copy.copy(OUTPUT_QOS),
             qos_overriding_options=QoSOverridingOptions.with_default_policies())
         self._pub_obstacles = self.create_publisher(
-            PointCloud2, 'obstacles', OUTPUT_QOS,
+            PointCloud2, 'obstacles', copy.copy(OUTPUT_QOS),
             qos_overriding_options=QoSOverridingOptions.with_default_policies())
         self._pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', DIAGNOSTICS_QOS)
         self._sub = self.create_subscription(
-            PointCloud2, 'points', self._on_cloud, qos_profile_sensor_data,
+            PointCloud2, 'points', self._on_cloud, copy.copy(qos_profile_sensor_data),
             qos_overriding_options=QoSOverridingOptions.with_default_policies())
         self._diag_timer = self.create_timer(self._diag_period_s, self._on_diag_timer)
 
@@ -411,24 +421,111 @@ class GroundSegmentationNode(Node):
         super().destroy_node()
 
 
+USAGE = """ground_segmentation_node [--help] [--ros-args ...]
+
+Ground/obstacle split of LiDAR point clouds with a Gaussian-process ground model (ROS 2 node).
+
+Topics (relative names): points (sub, PointCloud2, sensor-data QoS), ground and obstacles (pub,
+PointCloud2), /diagnostics. The clouds must be in the sensor's frame, or give its pose with the
+sensor_* parameters (README "Frames").
+
+Examples:
+  ground_segmentation_node --ros-args -r points:=/velodyne_points --params-file params.yaml
+  ground_segmentation_node --ros-args -r __ns:=/seg -r points:=/ouster/points
+  ros2 launch gp_ground_segmentation ground_segmentation.launch.py points:=/velodyne_points
+"""
+
+
+def _split_command_line(args: list) -> tuple[list, list]:
+    """(non-ROS arguments, ``--params-file`` values) of ``args`` (without the program name).
+
+    ROS arguments are those between ``--ros-args`` and ``--`` (or the end). Done here rather
+    than with rclpy.utilities.remove_ros_args, which already fails on a missing params file.
+    """
+    plain, files, in_ros, i = [], [], False, 0
+    while i < len(args):
+        token = args[i]
+        if token == '--ros-args':
+            in_ros = True
+        elif token == '--' and in_ros:
+            in_ros = False
+        elif in_ros and token == '--params-file' and i + 1 < len(args):
+            files.append(args[i + 1])
+            i += 1
+        elif not in_ros:
+            plain.append(token)
+        i += 1
+    return plain, files
+
+
+def _check_params_file_readable(path: str) -> None:
+    """rcl reports a missing or unreadable file as an RCLError traceback; say it in one line."""
+    try:
+        with open(path, 'rb'):
+            pass
+    except OSError as exc:
+        raise ParameterConfigError(
+            f'cannot read parameter file {path}: {exc.strerror or exc}') from None
+
+
+def _check_params_file_sections(path: str, node) -> None:
+    """A params file with no section for this node would be ignored silently by rcl (e.g. a
+    'ground_segmentation:' key when the node runs in a namespace): refuse to start instead."""
+    load_params_file(path, node.get_name(), node.get_namespace())
+
+
+class _QuietShutdown:
+    """SIGINT/SIGTERM: the first one stops the node (KeyboardInterrupt, after rclpy's own handler
+    has shut the context down), any further one is ignored. A terminal sends SIGINT to the whole
+    process group and ``ros2 launch`` forwards another one; without this the second signal lands
+    inside destroy_node() as a KeyboardInterrupt traceback and the exit code is -2."""
+
+    def __init__(self):
+        self.signalled = False
+
+    def install(self) -> None:
+        # Installed before rclpy.init(), so rclpy's handlers chain to this one.
+        signal.signal(signal.SIGINT, self._handle)
+        signal.signal(signal.SIGTERM, self._handle)
+
+    def _handle(self, signum, frame) -> None:
+        if self.signalled:
+            return
+        self.signalled = True
+        raise KeyboardInterrupt
+
+
 def main(args=None):
     """Entry point of ``ros2 run gp_ground_segmentation ground_segmentation_node``."""
-    rclpy.init(args=args)
+    argv = list(sys.argv if args is None else args)
+    parser = argparse.ArgumentParser(prog='ground_segmentation_node', usage=USAGE,
+                                     add_help=True)
+    plain_args, params_files = _split_command_line(argv[1:])
+    parser.parse_known_args(plain_args)  # --help prints the usage and exits here
+    logger = rclpy.logging.get_logger(NODE_NAME)
+    quiet = _QuietShutdown()
+    quiet.install()
     node = None
     exit_code = 0
     try:
+        for path in params_files:
+            _check_params_file_readable(path)
+        rclpy.init(args=argv)
         # The executor exists before the node announces itself, so a Ctrl-C right after the
         # 'listening' line never lands inside executor construction (an rclpy 7.1 __del__ race).
         executor = SingleThreadedExecutor()
         node = GroundSegmentationNode()
+        for path in params_files:
+            _check_params_file_sections(path, node)
         executor.add_node(node)
         executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except (ParameterConfigError, ParameterException) as exc:
-        rclpy.logging.get_logger(NODE_NAME).fatal(f'invalid parameters: {_one_line(exc, 1000)}')
+    except (ParameterConfigError, ParameterException, RCLError) as exc:
+        logger.fatal(f'invalid parameters: {_one_line(exc, 1000)}')
         exit_code = 1
     finally:
+        quiet.signalled = True  # from here on a signal must not interrupt the clean-up
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()

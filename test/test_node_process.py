@@ -172,4 +172,3 @@ def test_launch_description():
     assert {'points', 'params_file', 'namespace', 'use_sim_time', 'rviz'} <= names
     nodes = [e for e in description.entities if isinstance(e, Node)]
     assert len(nodes) == 2  # the segmentation node and the conditional RViz
-

@@ -13,6 +13,8 @@ import dataclasses
 import math
 from dataclasses import dataclass, field
 
+from .sensor_frame import SensorPose
+
 
 def _param(default, description: str, low=None, high=None):
     return field(default=default, metadata={'description': description, 'min': low, 'max': high})
@@ -113,6 +115,26 @@ class SegmenterParams:
         0.0, 'multiplier of the GP predictive std added to ground_threshold_m', 0.0, 100.0)
     max_threshold_m: float = _param(
         0.3, 'cap (m) on the total ground threshold, however large the predictive std', 0.0, 100.0)
+
+    # --- sensor pose in the cloud's frame (sensor_frame.py) ------------------------------------
+    sensor_x_m: float = _param(
+        0.0, 'x of the sensor in the cloud\'s frame (m): the radial grid is centred on the sensor '
+        '(e.g. its mounting offset when clouds come in base_link)', -1e4, 1e4)
+    sensor_y_m: float = _param(0.0, 'y of the sensor in the cloud\'s frame (m)', -1e4, 1e4)
+    sensor_z_m: float = _param(0.0, 'z of the sensor in the cloud\'s frame (m)', -1e4, 1e4)
+    sensor_roll_rad: float = _param(
+        0.0, 'roll of the cloud\'s frame against level ground (rad, about x, REP 103); the '
+        'cloud is levelled with it, e.g. for a tilted mount publishing in its own frame',
+        -math.pi, math.pi)
+    sensor_pitch_rad: float = _param(
+        0.0, 'pitch of the cloud\'s frame against level ground (rad, about y after roll; '
+        'positive = x axis pointing down)', -math.pi / 2, math.pi / 2)
+
+    @property
+    def sensor_pose(self) -> SensorPose:
+        """Where the sensor is in the cloud's frame and how that frame is tilted."""
+        return SensorPose(self.sensor_x_m, self.sensor_y_m, self.sensor_z_m,
+                          self.sensor_roll_rad, self.sensor_pitch_rad)
 
     def validate(self) -> 'SegmenterParams':
         """Check every range and cross-field rule; raise ValueError naming the field."""

@@ -66,6 +66,7 @@ from ..core import gp, gp_compiled
 from ..core.params import SegmenterParams
 from .pipeline import process_cloud
 from ..core.segmenter import GroundSegmenter
+from ..core.sensor_frame import NOT_CENTRED
 
 __all__ = ['GroundSegmentationNode', 'OUTPUT_QOS', 'main']
 
@@ -142,6 +143,7 @@ class GroundSegmentationNode(Node):
         self._log_times = OrderedDict()
         self._last_layout = None  # layout of the last processed frame
         self._last_stamp = None  # header stamp (s) of the last processed frame
+        self._centring_logged = False  # 'not sensor-centred' is logged once per process
         try:
             self._setup()
         except BaseException:
@@ -331,6 +333,10 @@ class GroundSegmentationNode(Node):
             self._pub_obstacles.publish(out.obstacles)
             self.window.record_frame(out, frame_id, notes)
             for note in notes:
+                if note.startswith(NOT_CENTRED):
+                    if self._centring_logged:  # a property of the set-up: say it once
+                        continue
+                    self._centring_logged = True
                 self._log_throttled('warning',
                                     f"suspicious input cloud (frame_id '{frame_id}'): {note}")
         except CloudFormatError as exc:

@@ -1,5 +1,5 @@
 # SPDX-License-Identifier: Apache-2.0
-"""``gp-ground-seg``: offline tools around the segmenter (no ROS graph needed).
+"""``gp-ground-seg``: tools around the segmenter (all but play/hz need no ROS graph).
 
 Subcommands:
 
@@ -9,6 +9,8 @@ Subcommands:
   and /diagnostics out, using the node's pipeline and parameter file.
 * ``plot FRAME``       side view of one angular segment + bird's-eye view of the frame (PNG).
 * ``make-sample``      re-write the first frames of a bag as a small compressed mcap (data/).
+* ``play IN``          publish a bag's clouds live with their recorded timing (tools/play.py).
+* ``hz TOPIC...``      print topic rates and a one-line summary of the last message.
 
 Every expected failure prints one line ``gp-ground-seg <cmd>: error: ...`` on stderr and exits
 with status 2; there is no traceback for bad input.
@@ -286,6 +288,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--frames', type=int, default=3)
     p.add_argument('--topic', default='/velodyne_points')
     p.set_defaults(func=cmd_make_sample)
+
+    from .play import register as register_live_tools
+    register_live_tools(sub)  # play, hz (tools/play.py)
     return parser
 
 

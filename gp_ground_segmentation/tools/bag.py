@@ -201,12 +201,12 @@ class FrameSource:
             if self.requested_topic is None and len(clouds) == 1:
                 self.note = f'topic {DEFAULT_TOPIC} not in the bag; using {clouds[0]}'
                 self.topic = clouds[0]
-            elif not clouds:
-                raise BagError(f'bag {name} has no {POINTCLOUD2} topic; its topics: {listing}. '
-                               f'Raw sensor packets must be decoded to PointCloud2 first (e.g. '
-                               f'velodyne_pointcloud, ouster-ros, Nebula)')
             else:
-                raise BagError(f'topic {self.topic} not in bag {name}; its topics: {listing}')
+                hint = '' if clouds else (
+                    f'; none is {POINTCLOUD2}: raw sensor packets must be decoded to point '
+                    f'clouds first (velodyne_pointcloud, ouster-ros, Nebula)')
+                raise BagError(f'topic {self.topic} not in bag {name}; its topics: {listing}'
+                               f'{hint}')
         types = topics[self.topic]
         if types != {POINTCLOUD2}:
             raise BagError(f'topic {self.topic} carries {"|".join(sorted(types))}, not '

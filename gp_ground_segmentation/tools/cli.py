@@ -218,6 +218,14 @@ class _Parser(argparse.ArgumentParser):
         self.exit(EXIT_ERROR, f'{self.prog}: error: {" ".join(message.split())}\n')
 
 
+def add_frame_id_option(parser) -> None:
+    """--frame-id: the header.frame_id given to clouds made from .bin/.pcd files."""
+    from .bag import SYNTHETIC_FRAME_ID
+    parser.add_argument('--frame-id', default=SYNTHETIC_FRAME_ID,
+                        help='header.frame_id of clouds made from .bin/.pcd files (default '
+                        f'{SYNTHETIC_FRAME_ID})')
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog='gp-ground-seg', description='Offline tools for the GP ground '
                      'segmenter: evaluate, replay bags, plot a frame.')
@@ -262,8 +270,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help='output topics PREFIX/ground and PREFIX/obstacles (default: the input '
                    "topic, so outputs sit beside their input; '' gives /ground and /obstacles "
                    'like the node in the root namespace)')
-    p.add_argument('--frame-id', default='velodyne',
-                   help='header.frame_id of clouds made from .bin/.pcd files (default velodyne)')
+    add_frame_id_option(p)
     p.set_defaults(func=cmd_replay)
 
     p = sub.add_parser('plot', help='plot one frame (side view of a segment + bird\'s-eye view)',

@@ -269,6 +269,7 @@ def cmd_hz(args) -> int:
 
 def register(sub) -> None:
     """Add the ``play`` and ``hz`` subcommands to the gp-ground-seg subparsers ``sub``."""
+    from .cli import add_frame_id_option
     p = sub.add_parser('play', help='publish a bag\'s clouds live (like ros2 bag play)',
                        description='Publish the PointCloud2 frames of a bag (or of .bin/.pcd '
                        'files, 10 Hz) with their recorded timing and sensor-data QoS (best '
@@ -287,8 +288,7 @@ def register(sub) -> None:
                    '--clock), e.g. for TF lookups on a live robot')
     p.add_argument('--clock', action='store_true',
                    help='publish /clock from the bag time (for nodes with use_sim_time)')
-    p.add_argument('--frame-id', default='velodyne',
-                   help='header.frame_id of clouds made from .bin/.pcd files (default velodyne)')
+    add_frame_id_option(p)
     p.add_argument('--max-frames', type=int, metavar='K', help='play only the first K frames')
     p.add_argument('--wait-for-subscriber', type=float, default=5.0, metavar='S',
                    help='wait up to S seconds for a subscriber before the first frame '

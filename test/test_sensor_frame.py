@@ -80,6 +80,13 @@ def test_centring_note(scan):
     assert note is not None and note.startswith(NOT_CENTRED) and 'sensor_*' in note
     assert centring_note(scan + [20.0, 0.0, 0.0], SensorPose(x=20.0)) is None
     assert centring_note(scan[:10] + [50.0, 0.0, 0.0]) is None  # too few points to judge
+    # balanced but spread evenly to 80 m (10 % within 10 m), and a forward-looking sensor
+    # (one-sided, most returns near): both centred, neither flagged
+    rng = np.random.default_rng(0)
+    r, a = rng.uniform(2, 80, 20000), rng.uniform(-np.pi, np.pi, 20000)
+    assert centring_note(np.c_[r * np.cos(a), r * np.sin(a), np.zeros_like(r)]) is None
+    front = scan[(scan[:, 0] > 0) & (np.abs(scan[:, 1]) < scan[:, 0])]
+    assert centring_note(front) is None
 
 
 @pytest.mark.skipif(not LABELED_BIN.exists(), reason=f'{DATA} not present')

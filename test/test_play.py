@@ -5,6 +5,7 @@ import os
 import subprocess
 import sys
 import time
+import uuid
 
 import numpy as np
 import pytest
@@ -39,11 +40,19 @@ def _tool(*args):
 
 def test_play_feeds_the_live_node_with_restamp_and_clock(pcd_dir, ros_harness):
     from rosgraph_msgs.msg import Clock
-    h = ros_harness()
+    # Topics of our own: other test runs on this machine may share the DDS domain.
+    prefix = f'/gp_play_{os.getpid()}_{uuid.uuid4().hex[:8]}'
+    h = ros_harness(context_args=['--ros-args', '-r', f'points:={prefix}/points',
+                                  '-r', f'ground:={prefix}/ground',
+                                  '-r', f'obstacles:={prefix}/obstacles'])
     clocks = []
     h.peer.create_subscription(Clock, '/clock', lambda m: clocks.append(m), 10)
-    hz = _tool('hz', '/ground', '/obstacles', '--duration', '12', '--period', '100')
-    play = _tool('play', str(pcd_dir), '--topic', 'points', '--frame-id', 'base_lidar',
+    hz = _tool('hz', f'{prefix}/ground', f'{prefix}/obstacles', '--duration', '20',
+               '--period', '100')
+    # hz subscribes once it has seen the topics: wait for it (peer + hz on each output)
+    assert wait_for(lambda: h.node.count_subscribers(f'{prefix}/ground') >= 2
+                    and h.node.count_subscribers(f'{prefix}/obstacles') >= 2, 15.0)
+    play = _tool('play', str(pcd_dir), '--topic', f'{prefix}/points', '--frame-id', 'base_lidar',
                  '--rate', '2', '--restamp', '--clock', '--wait-for-subscriber', '10')
     out, err = play.communicate(timeout=60)
     assert play.returncode == 0, err
@@ -57,7 +66,7 @@ def test_play_feeds_the_live_node_with_restamp_and_clock(pcd_dir, ros_harness):
     assert clocks and max(c.clock.sec + 1e-9 * c.clock.nanosec for c in clocks) >= 0.4 - 1e-6
     hz_out, hz_err = hz.communicate(timeout=60)
     assert hz.returncode == 0, hz_err
-    summary = [ln for ln in hz_out.splitlines() if ln.startswith('/ground:')][-1]
+    summary = [ln for ln in hz_out.splitlines() if ln.startswith(f'{prefix}/ground:')][-1]
     assert f'{FRAMES} message(s)' in summary and "frame_id 'base_lidar'" in summary
 
 

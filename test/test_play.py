@@ -39,12 +39,16 @@ def _tool(*args):
 
 
 def test_play_feeds_the_live_node_with_restamp_and_clock(pcd_dir, ros_harness):
+    from rclpy.parameter import Parameter
     from rosgraph_msgs.msg import Clock
     # Topics of our own: other test runs on this machine may share the DDS domain.
     prefix = f'/gp_play_{os.getpid()}_{uuid.uuid4().hex[:8]}'
+    # a slot for every frame: under load the latest-wins slot would (rightly) drop some
     h = ros_harness(context_args=['--ros-args', '-r', f'points:={prefix}/points',
                                   '-r', f'ground:={prefix}/ground',
-                                  '-r', f'obstacles:={prefix}/obstacles'])
+                                  '-r', f'obstacles:={prefix}/obstacles'],
+                    node_kwargs={'parameter_overrides': [Parameter('queue_size',
+                                                                   value=FRAMES)]})
     clocks = []
     h.peer.create_subscription(Clock, '/clock', lambda m: clocks.append(m), 10)
     hz = _tool('hz', f'{prefix}/ground', f'{prefix}/obstacles', '--duration', '20',
@@ -85,7 +89,10 @@ def test_play_loop_stops_cleanly_on_sigint(pcd_dir):
     play = _tool('play', str(pcd_dir), '--topic', '/gp_test_loop', '--loop',
                  '--wait-for-subscriber', '0')
     try:
-        time.sleep(3.0)
+        for line in play.stderr:  # started: the graph is up and frames are going out
+            if 'publishing' in line:
+                break
+        time.sleep(1.0)
         play.send_signal(signal.SIGINT)
         play.send_signal(signal.SIGINT)
         _, err = play.communicate(timeout=30)

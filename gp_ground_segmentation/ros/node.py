@@ -39,7 +39,6 @@ from __future__ import annotations
 import argparse
 import copy
 import re
-import signal
 import sys
 import threading
 import time
@@ -65,6 +64,7 @@ from .diagnostics import ProcessingWindow, diagnostics_array, diagnostics_status
 from ..core import gp, gp_compiled
 from ..core.params import SegmenterParams
 from .pipeline import process_cloud
+from .shutdown import QuietShutdown
 from ..core.segmenter import GroundSegmenter
 from ..core.sensor_frame import NOT_CENTRED
 
@@ -480,27 +480,6 @@ def _check_params_file_sections(path: str, node) -> None:
     load_params_file(path, node.get_name(), node.get_namespace())
 
 
-class _QuietShutdown:
-    """SIGINT/SIGTERM: the first one stops the node (KeyboardInterrupt, after rclpy's own handler
-    has shut the context down), any further one is ignored. A terminal sends SIGINT to the whole
-    process group and ``ros2 launch`` forwards another one; without this the second signal lands
-    inside destroy_node() as a KeyboardInterrupt traceback and the exit code is -2."""
-
-    def __init__(self):
-        self.signalled = False
-
-    def install(self) -> None:
-        # Installed before rclpy.init(), so rclpy's handlers chain to this one.
-        signal.signal(signal.SIGINT, self._handle)
-        signal.signal(signal.SIGTERM, self._handle)
-
-    def _handle(self, signum, frame) -> None:
-        if self.signalled:
-            return
-        self.signalled = True
-        raise KeyboardInterrupt
-
-
 def main(args=None):
     """Entry point of ``ros2 run gp_ground_segmentation ground_segmentation_node``."""
     argv = list(sys.argv if args is None else args)
@@ -509,7 +488,7 @@ def main(args=None):
     plain_args, params_files = _split_command_line(argv[1:])
     parser.parse_known_args(plain_args)  # --help prints the usage and exits here
     logger = rclpy.logging.get_logger(NODE_NAME)
-    quiet = _QuietShutdown()
+    quiet = QuietShutdown()
     quiet.install()
     node = None
     exit_code = 0
@@ -531,10 +510,11 @@ def main(args=None):
         logger.fatal(f'invalid parameters: {_one_line(exc, 1000)}')
         exit_code = 1
     finally:
-        quiet.signalled = True  # from here on a signal must not interrupt the clean-up
+        quiet.ignore_signals()  # from here on a signal must not interrupt the clean-up
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
+        quiet.ignore_signals()  # rclpy restores the handlers it replaced when it shuts down
     if exit_code:
         sys.exit(exit_code)
 

@@ -16,33 +16,24 @@ from __future__ import annotations
 
 import copy
 import importlib
-import signal
 import sys
 import time
 from collections import deque
+
+from ..ros.shutdown import QuietShutdown
 
 CLOCK_PERIOD_S = 0.025  # /clock at 40 Hz while waiting between frames (ros2 bag play's default)
 
 
 def _ros_context():
-    """A private rclpy context without rclpy's signal handlers: Ctrl-C and SIGTERM then raise
-    KeyboardInterrupt here, wherever the loop is (sleeping included)."""
+    """A private rclpy context without rclpy's signal handlers: with ``QuietShutdown`` the first
+    Ctrl-C or SIGTERM raises KeyboardInterrupt wherever the loop is (sleeping included) and
+    further ones are ignored."""
     import rclpy
     from rclpy.signals import SignalHandlerOptions
     context = rclpy.Context()
     rclpy.init(args=[], context=context, signal_handler_options=SignalHandlerOptions.NO)
     return context
-
-
-def _stop_on_sigterm():
-    def handler(signum, frame):
-        raise KeyboardInterrupt
-    signal.signal(signal.SIGTERM, handler)
-
-
-def _ignore_further_signals():
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
 
 
 def _to_time_msg(ns: int):
@@ -115,7 +106,8 @@ def cmd_play(args) -> int:
     prog = 'gp-ground-seg play'
     if source.note:
         print(f'{prog}: note: {source.note}', file=sys.stderr)
-    _stop_on_sigterm()
+    quiet = QuietShutdown()
+    quiet.install()
     context = _ros_context()
     node = player = None
     t0 = time.monotonic()
@@ -153,7 +145,7 @@ def cmd_play(args) -> int:
     except KeyboardInterrupt:
         pass
     finally:
-        _ignore_further_signals()
+        quiet.ignore_signals()
         if node is not None:
             node.destroy_node()
         import rclpy
@@ -214,7 +206,8 @@ def cmd_hz(args) -> int:
     from .bag import normalize_topic
 
     topics = [normalize_topic(t) for t in args.topics]
-    _stop_on_sigterm()
+    quiet = QuietShutdown()
+    quiet.install()
     context = _ros_context()
     node = None
     stats = {t: _TopicStats(args.window) for t in topics}
@@ -252,7 +245,7 @@ def cmd_hz(args) -> int:
     except (ValueError, ImportError, AttributeError) as err:
         raise CliError(f'cannot subscribe: {err}') from None
     finally:
-        _ignore_further_signals()
+        quiet.ignore_signals()
         if node is not None:
             node.destroy_node()
         import rclpy

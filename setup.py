@@ -1,7 +1,7 @@
 # SPDX-License-Identifier: Apache-2.0
 """Install script: works for both `colcon build` (ament_python) and a plain `pip install .`.
 
-The data_files put the ament index marker, package.xml and config/*.yaml, *.xml, *.rviz under
+The data_files put the ament index marker, package.xml, config/ and launch/ files under
 share/gp_ground_segmentation so that `ros2 run` / `ros2 pkg` find the package; setup.cfg puts the
 console scripts in lib/gp_ground_segmentation, where `ros2 run` looks for executables.
 """
@@ -23,6 +23,7 @@ setup(
         ('share/' + package_name + '/config', glob.glob(os.path.join('config', '*.yaml'))
          + glob.glob(os.path.join('config', '*.xml'))
          + glob.glob(os.path.join('config', '*.rviz'))),
+        ('share/' + package_name + '/launch', glob.glob(os.path.join('launch', '*.launch.py'))),
     ],
     python_requires='>=3.10',
     # ROS 2 Jazzy comes from PyPI here (rclpy with Fast DDS, the message packages); colcon users

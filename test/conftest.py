@@ -105,8 +105,11 @@ class RosHarness:
             self.thread.start()
             assert wait_for(lambda: self.pub.get_subscription_count() > 0, 10.0), \
                 'node subscription not discovered'
-            assert wait_for(lambda: self.node.count_subscribers('/ground') > 0
-                            and self.node.count_subscribers('/obstacles') > 0, 10.0)
+            # resolved names: context_args may remap or namespace the outputs
+            outputs = [p.topic_name for p in self.node.publishers
+                       if p.topic_name.endswith(('/ground', '/obstacles'))]
+            assert wait_for(lambda: all(self.node.count_subscribers(t) > 0 for t in outputs),
+                            10.0)
         except BaseException:
             self.close()
             raise

@@ -436,7 +436,9 @@ CASES = [
     Case('all points identical', lambda s: encode(
         header(s), np.tile([7.0, 1.0, GROUND_Z], (300, 1))),
          expect=expect_all_ground),
-    Case('vertical wall', lambda s: encode(header(s), _wall()), expect=expect_wall),
+    # a lone wall 10 m ahead is not what a sensor sees around itself: reported as such
+    Case('vertical wall', lambda s: encode(header(s), _wall()), expect=expect_wall,
+         warn=('not look sensor-centred',)),
     Case('points only behind the sensor', lambda s: encode(
         header(s), scene(front='behind')[0], tags={'is_box': scene(front='behind')[1]}),
         expect=expect_scene),

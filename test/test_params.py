@@ -171,7 +171,7 @@ def test_describe_params_lists_every_field():
 
 # Words that state a unit (or that the quantity has none) in a description.
 UNIT_TOKENS = ('(m)', '(m ', 'm per', 'dimensionless', 'ratio', 'factor', 'multiplier',
-               'dz/dr', 'slope', 'degrees')
+               'dz/dr', 'slope', 'degrees', '(rad')
 
 
 def _unit_cases():

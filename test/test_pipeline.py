@@ -241,3 +241,54 @@ def test_window_resize_keeps_recent_frames():
     w.resize(2)
     v = _values(diagnostics_status(w, budget_ms=100.0))
     assert v['total_ms_mean'] == '11.500' and v['window_frames'] == '2'
+
+
+def test_input_warning_stays_warn_over_the_window():
+    # 14 frames whose stamps go backwards, then clean ones: WARN until the window has slid past.
+    w = ProcessingWindow(window=20)
+    for i in range(14):
+        w.record_received('velo', now=i / 10)
+        w.record_frame(_fake_output(), 'velo', ['header stamp went backwards by 0.100 s'])
+    w.record_received('velo', now=1.4)
+    w.record_frame(_fake_output(), 'velo', [])
+    s = diagnostics_status(w, budget_ms=100.0, now=1.4)
+    assert s.level == DiagnosticStatus.WARN, s.message
+    assert 'backwards' in s.message and '14 frame(s)' in s.message
+    assert _values(s)['input_warnings_in_window'] == '14'
+    for i in range(19):
+        w.record_received('velo', now=1.5 + i / 10)
+        w.record_frame(_fake_output(), 'velo', [])
+    s = diagnostics_status(w, budget_ms=100.0, now=3.4)
+    assert s.level == DiagnosticStatus.OK, s.message
+
+
+def test_input_rate_decays_when_input_stops():
+    w = ProcessingWindow(window=50)
+    for i in range(50):
+        w.record_received('velo', now=i / 10)
+    assert float(_values(diagnostics_status(w, budget_ms=100.0, now=4.95))['input_rate_hz']) \
+        == pytest.approx(10.0)
+    rates = [float(_values(diagnostics_status(w, budget_ms=100.0, now=4.9 + silence))
+                   ['input_rate_hz']) for silence in (1.0, 6.0, 60.0)]
+    assert rates[0] < 9.0 and rates[1] < 5.0 and rates[2] < 1.0
+    assert rates == sorted(rates, reverse=True)
+
+
+def test_cold_first_frame_does_not_turn_the_budget_warn():
+    # The first frame learns theta from scratch (40 evaluations, compiled kernel loading):
+    # one slow frame then fast ones is OK; slow frames after it still WARN.
+    w = ProcessingWindow(window=50)
+    w.record_received('velo', now=0.0)
+    w.record_frame(_fake_output(total_ms=850.0), 'velo')
+    s = diagnostics_status(w, budget_ms=100.0, now=0.0)
+    assert s.level == DiagnosticStatus.WARN and 'budget' in s.message  # nothing else to judge
+    for i in range(2):
+        w.record_received('velo', now=0.1 * (i + 1))
+        w.record_frame(_fake_output(total_ms=60.0), 'velo')
+    s = diagnostics_status(w, budget_ms=100.0, now=0.2)
+    assert s.level == DiagnosticStatus.OK, s.message
+    assert _values(s)['total_ms_max'] == '850.000'  # still shown in the timings
+    w.record_received('velo', now=0.3)
+    w.record_frame(_fake_output(total_ms=300.0), 'velo')
+    s = diagnostics_status(w, budget_ms=100.0, now=0.3)
+    assert s.level == DiagnosticStatus.WARN and 'budget' in s.message

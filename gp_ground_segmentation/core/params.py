@@ -14,6 +14,8 @@ import dataclasses
 import math
 from dataclasses import dataclass, field
 
+from .sensor_frame import SensorPose
+
 
 TYPE_NAMES = {'float': 'a double (write it with a decimal point, e.g. 80.0)',
               'int': 'an integer (no decimal point)', 'bool': 'a bool (true/false)'}
@@ -180,6 +182,26 @@ class SegmenterParams:
         0.7, 'points higher than this (m) above the predicted ground are not columns (tree '
         'crowns, car bodies and signs overhanging visible ground); above structure_rise_m',
         0.0, 100.0)
+
+    # --- sensor pose in the cloud's frame (sensor_frame.py) ------------------------------------
+    sensor_x_m: float = _param(
+        0.0, 'x of the sensor in the cloud\'s frame (m): the radial grid is centred on the sensor '
+        '(e.g. its mounting offset when clouds come in base_link)', -1e4, 1e4)
+    sensor_y_m: float = _param(0.0, 'y of the sensor in the cloud\'s frame (m)', -1e4, 1e4)
+    sensor_z_m: float = _param(0.0, 'z of the sensor in the cloud\'s frame (m)', -1e4, 1e4)
+    sensor_roll_rad: float = _param(
+        0.0, 'roll of the cloud\'s frame against level ground (rad, about x, REP 103); the '
+        'cloud is levelled with it, e.g. for a tilted mount publishing in its own frame',
+        -math.pi, math.pi)
+    sensor_pitch_rad: float = _param(
+        0.0, 'pitch of the cloud\'s frame against level ground (rad, about y after roll; '
+        'positive = x axis pointing down)', -math.pi / 2, math.pi / 2)
+
+    @property
+    def sensor_pose(self) -> SensorPose:
+        """Where the sensor is in the cloud's frame and how that frame is tilted."""
+        return SensorPose(self.sensor_x_m, self.sensor_y_m, self.sensor_z_m,
+                          self.sensor_roll_rad, self.sensor_pitch_rad)
 
     def validate(self) -> 'SegmenterParams':
         """Check every range and cross-field rule; raise ValueError naming the field."""

@@ -24,6 +24,11 @@ marks the paper's steps, [ours] our additions (``additions.py``, each with a ``u
              above them are the feet of walls, fences, cars, trunks and bushes: obstacle
              (``structure.vertical_structure_mask``).
 
+The grid is centred at the origin and z is taken as up: a cloud not in the sensor's own frame
+is first moved into the levelled sensor frame with the ``sensor_*`` pose parameters
+(sensor_frame.py; no copy when they are all 0). Labels are per input point; ``ground_height``
+is in the input's frame; ``details`` (grid, lines, GP) are in the levelled frame.
+
 Choices where the paper is vague, each a parameter (see params.py):
 
 * Outlier candidates. The lowest point of a bin is not always ground: below-ground reflection
@@ -63,6 +68,7 @@ from .gp import FrameGP, GPSolution, GroundAnchor, length_scale_factors, resolve
 from .grid import RadialGrid, build_grid, relative_density
 from .lines import LineSegments, extract_lines
 from .params import SegmenterParams
+from .sensor_frame import ground_height_in_cloud_frame, to_levelled_frame
 from .structure import vertical_structure_mask
 from .surface import GroundSurface, ground_offsets
 
@@ -424,7 +430,15 @@ class GroundSegmenter:
         # overflow to inf is handled where it can happen (absurdly far points: the kernel between
         # them becomes 0); do not spray RuntimeWarnings into a node's log for it
         with _single_threaded_blas(), np.errstate(over='ignore'):
-            return self._segment(points, details)
+            pose = self._params.sensor_pose
+            if pose.is_identity:  # a cloud in the sensor frame: no copy
+                return self._segment(points, details)
+            # sensor_frame.py: segment in the levelled sensor frame, report heights in ours
+            levelled = to_levelled_frame(points, pose)
+            result = self._segment(levelled, details)
+            result.ground_height = ground_height_in_cloud_frame(levelled, result.ground_height,
+                                                                pose)
+            return result
 
     def _segment(self, points: np.ndarray, details: bool) -> SegmentationResult:
         p = self._params

@@ -21,13 +21,17 @@ from pathlib import Path
 
 from ..core.params import SegmenterParams, describe_params, value_problem
 
-__all__ = ['NODE_NAME', 'NODE_PARAMS', 'ParameterConfigError', 'all_param_specs',
-           'check_param_value', 'describe_node_params', 'is_ros_builtin', 'load_params_file',
-           'node_param_defaults', 'render_param_overrides', 'render_params_table',
-           'render_params_yaml', 'split_params',
+__all__ = ['NODE_NAME', 'NODE_PARAMS', 'PARAMS_FILE_KEY', 'ParameterConfigError',
+           'all_param_specs', 'check_param_value', 'describe_node_params', 'is_ros_builtin',
+           'load_params_file', 'node_param_defaults', 'render_param_overrides',
+           'render_params_table', 'render_params_yaml', 'split_params',
            'validate_node_params']
 
 NODE_NAME = 'ground_segmentation'
+# Key of the shipped params file: '/**' matches the node in any namespace and under any name
+# (-r __ns:=/seg, -r __node:=...); a plain 'ground_segmentation:' key only matches in the root
+# namespace, and rcl silently ignores a file that has no section for the node.
+PARAMS_FILE_KEY = '/**'
 
 # Node-only parameters (not part of the segmenter): name -> spec, same keys as describe_params().
 NODE_PARAMS = {
@@ -205,9 +209,11 @@ def load_params_file(path, node_name: str = NODE_NAME, namespace: str = '/'):
         matched = True
         _flatten('', params, values, str(path))
     if doc and not matched:
+        ns = namespace.strip('/')
+        fqn = ('/' + ns if ns else '') + '/' + node_name
         raise ParameterConfigError(
-            f"{path}: no section for node '{node_name}' (use '{node_name}:' or '/**:' with "
-            f"'ros__parameters:' under it)")
+            f"{path}: no section for node '{fqn}' (its keys: {', '.join(map(str, doc))}); "
+            f"use '/**:' (any node, any namespace) or '{fqn}:' with 'ros__parameters:' under it")
     specs = all_param_specs()
     for name, value in values.items():
         if is_ros_builtin(name):
@@ -246,7 +252,7 @@ def _range_text(spec: dict) -> str:
            f'{_yaml_scalar(high) if high is not None else "inf"}]'
 
 
-def render_params_yaml(node_name: str = NODE_NAME) -> str:
+def render_params_yaml(section_key: str = PARAMS_FILE_KEY) -> str:
     """The text of config/params.yaml: every parameter with its default and a comment.
 
     ``python -c "from gp_ground_segmentation.ros.config import render_params_yaml as r;
@@ -259,11 +265,13 @@ def render_params_yaml(node_name: str = NODE_NAME) -> str:
         '# Use:  ros2 run gp_ground_segmentation ground_segmentation_node --ros-args \\',
         '#         -r points:=/velodyne_points --params-file config/params.yaml',
         '# Types are strict (as in rclpy): doubles need a decimal point (80.0, not 80).',
-        '# Optional QoS overrides of the outputs, e.g. best-effort ground cloud:',
+        "# The key '/**' matches the node in any namespace and under any node name.",
+        '# Optional QoS overrides of the outputs (keys are the resolved topic names, e.g.',
+        '# /seg/ground in namespace /seg), e.g. a best-effort ground cloud:',
         '#   qos_overrides:',
         '#     /ground:',
         '#       publisher: {reliability: best_effort, depth: 1}',
-        f'{node_name}:',
+        f"'{section_key}':",
         '  ros__parameters:',
     ]
     sections = [('segmenter (GroundSegmenter / SegmenterParams)', describe_params()),

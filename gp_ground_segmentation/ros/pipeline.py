@@ -26,6 +26,7 @@ import numpy as np
 
 from .cloud import cloud_xyz, make_cloud, read_cloud, subset_cloud, with_float32_field
 from ..core.segmenter import SegmentationResult
+from ..core.sensor_frame import centring_note
 
 __all__ = ['FrameOutput', 'process_cloud', 'input_warnings', 'STAGES', 'frame_timings',
            'surface_cloud', 'HEIGHT_FIELD', 'OUTPUT_SWITCHES', 'SURFACE_FIELDS']
@@ -51,7 +52,8 @@ class FrameOutput:
     encode_ms: float  # both subset clouds built (ms)
     total_ms: float = float('nan')  # wall time of process_cloud: decode + segment + encode (ms)
     # One-line notes about a usable but suspicious input (empty, no valid point, trailing
-    # bytes); the node reports them as a diagnostics WARN. Empty for a normal frame.
+    # bytes, not sensor-centred); the node reports them as a diagnostics WARN. Empty for a
+    # normal frame.
     warnings: list = field(default_factory=list)
     surface: object = None  # PointCloud2 of the ground surface, when asked for
 
@@ -122,13 +124,23 @@ def process_cloud(msg, segmenter, *, publish_ground_surface: bool = False,
     t3 = time.perf_counter()
     return FrameOutput(ground=ground, obstacles=obstacles, result=result,
                        decode_ms=(t1 - t0) * 1e3, encode_ms=(t3 - t2) * 1e3,
-                       total_ms=(t3 - t0) * 1e3, warnings=input_warnings(msg, result),
+                       total_ms=(t3 - t0) * 1e3,
+                       warnings=input_warnings(msg, result, xyz, getattr(segmenter, 'params',
+                                                                         None)),
                        surface=surface)
 
 
-def input_warnings(msg, result) -> list:
-    """One-line notes on a cloud that decoded fine but deserves a look (see FrameOutput)."""
+def input_warnings(msg, result, xyz=None, params=None) -> list:
+    """One-line notes on a cloud that decoded fine but deserves a look (see FrameOutput).
+
+    With ``xyz`` (the decoded points): also whether the cloud looks sensor-centred, around
+    the sensor position of ``params`` (SegmenterParams) when given.
+    """
     notes = []
+    if xyz is not None:
+        note = centring_note(xyz, getattr(params, 'sensor_pose', None))
+        if note:
+            notes.append(note)
     n = int(result.valid_mask.size)
     if n == 0:
         notes.append('empty cloud (0 points)')

@@ -73,6 +73,16 @@ class InputFrame:
     msg: object
 
 
+def normalize_topic(topic: Optional[str]) -> Optional[str]:
+    """Bag topics are absolute: 'velodyne_points' means '/velodyne_points'."""
+    if topic is None:
+        return None
+    topic = topic.strip()
+    if not topic or topic == '/':
+        raise BagError('empty topic name')
+    return topic if topic.startswith('/') else '/' + topic
+
+
 def is_point_file(path: Path) -> bool:
     return path.suffix.lower() in POINT_FILE_SUFFIXES
 
@@ -100,8 +110,9 @@ def _expand_inputs(inputs: Sequence) -> tuple[str, list[Path]]:
     return 'bag', paths
 
 
-def _pointfile_cloud(path: Path, index: int):
-    """A PointCloud2 from a KITTI .bin or a .pcd, stamped i * 0.1 s, frame_id 'velodyne'."""
+def _pointfile_cloud(path: Path, index: int, frame_id: str = SYNTHETIC_FRAME_ID):
+    """A PointCloud2 from a KITTI .bin or a .pcd, stamped i * 0.1 s (from 0, i.e. 1970: point
+    files have no time), with ``frame_id``."""
     from builtin_interfaces.msg import Time
     from std_msgs.msg import Header
 
@@ -118,7 +129,7 @@ def _pointfile_cloud(path: Path, index: int):
             np.dtype([(n, '<f4') for n in names])).reshape(-1)
     stamp_ns = index * SYNTHETIC_PERIOD_NS
     header = Header(stamp=Time(sec=stamp_ns // 1_000_000_000, nanosec=stamp_ns % 1_000_000_000),
-                    frame_id=SYNTHETIC_FRAME_ID)
+                    frame_id=frame_id)
     return make_cloud(header, points), stamp_ns
 
 
@@ -130,8 +141,10 @@ class FrameSource:
     """
 
     def __init__(self, inputs: Sequence, topic: Optional[str] = None,
-                 max_frames: Optional[int] = None):
+                 max_frames: Optional[int] = None, frame_id: str = SYNTHETIC_FRAME_ID):
         self.kind, self.paths = _expand_inputs(inputs)
+        topic = normalize_topic(topic)
+        self.frame_id = frame_id  # header.frame_id of clouds made from point files
         self.requested_topic = topic
         self.topic = topic or DEFAULT_TOPIC
         self.max_frames = max_frames
@@ -168,9 +181,11 @@ class FrameSource:
 
     def _open_bag(self) -> None:
         from rosbags.highlevel import AnyReader
+        from rosbags.typesys import Stores, get_typestore
         name = self.description
         try:
-            reader = AnyReader(self.paths)
+            # Older rosbag2 bags (metadata < 8) carry no message definitions: use Jazzy's types.
+            reader = AnyReader(self.paths, default_typestore=get_typestore(Stores.ROS2_JAZZY))
             reader.open()
         except _reader_errors() as err:
             raise BagError(f'cannot read bag {name} (corrupt, truncated or not a bag): '
@@ -188,11 +203,16 @@ class FrameSource:
                 self.note = f'topic {DEFAULT_TOPIC} not in the bag; using {clouds[0]}'
                 self.topic = clouds[0]
             else:
-                raise BagError(f'topic {self.topic} not in bag {name}; its topics: {listing}')
+                hint = '' if clouds else (
+                    f'; none is {POINTCLOUD2}: raw sensor packets must be decoded to point '
+                    f'clouds first (velodyne_pointcloud, ouster-ros, Nebula)')
+                raise BagError(f'topic {self.topic} not in bag {name}; its topics: {listing}'
+                               f'{hint}')
         types = topics[self.topic]
         if types != {POINTCLOUD2}:
             raise BagError(f'topic {self.topic} carries {"|".join(sorted(types))}, not '
-                           f'{POINTCLOUD2}')
+                           f'{POINTCLOUD2}; the segmenter needs point clouds (decode raw '
+                           f'packets with the sensor\'s driver first); its topics: {listing}')
         self._connections = [c for c in reader.connections if c.topic == self.topic]
         self.count = sum(c.msgcount for c in self._connections)
         if self.count == 0:
@@ -208,7 +228,7 @@ class FrameSource:
         from .io import PointFileError
         for i, path in enumerate(self.paths[:self.count]):
             try:
-                msg, stamp = _pointfile_cloud(path, i)
+                msg, stamp = _pointfile_cloud(path, i, self.frame_id)
             except (PointFileError, OSError, ValueError) as err:
                 raise BagError(f'{path}: {_one_line(err)}') from None
             yield InputFrame(i, stamp, msg)
@@ -402,6 +422,17 @@ def load_segmenter_params(params_file: Optional[str]):
     return load_params(params_file)[0]
 
 
+def warm_up(log=None) -> None:
+    """Load the compiled GP kernel before the first frame, as the node's worker does, so the
+    first frame's timing (and its diagnostics) is not that of numba's compile/cache load."""
+    from ..core import gp_compiled
+    try:
+        gp_compiled.warm_up()
+    except Exception as exc:  # noqa: BLE001 - the numpy path still works
+        if log:
+            log(f'compiled GP kernel unavailable ({_one_line(exc)}); the first frame loads it')
+
+
 def _storage_plugin(storage: str):
     from rosbags.rosbag2 import StoragePlugin
     plugins = {'mcap': StoragePlugin.MCAP, 'sqlite3': StoragePlugin.SQLITE3}
@@ -454,17 +485,22 @@ def _move_into_place(tmp: Path, out: Path) -> None:
 def replay(inputs: Sequence, out_bag, *, topic: Optional[str] = None,
            params_file: Optional[str] = None, storage: str = 'mcap', force: bool = False,
            max_frames: Optional[int] = None, progress: Optional[Progress] = None,
-           log=None) -> ReplaySummary:
+           log=None, output_prefix: Optional[str] = None,
+           frame_id: str = SYNTHETIC_FRAME_ID) -> ReplaySummary:
     """Segment every PointCloud2 of ``inputs`` on ``topic`` and write the result bag ``out_bag``.
 
     ``inputs``: one bag (directory, .mcap, .db3, or ROS 1 .bag files) or point files / a directory
-    of them. Output topics: ``<topic>/ground``, ``<topic>/obstacles`` (input header and all fields
+    of them (``frame_id`` is their header.frame_id). Output topics:
+    ``<output_prefix>/ground``, ``<output_prefix>/obstacles`` (input header and all fields
     kept, points byte for byte, plus a ``height_above_ground`` field when the parameter file's
-    ``add_height_above_ground_field`` is true), ``<topic>/ground_surface`` (the GP ground surface,
-    unless ``publish_ground_surface`` is false) and ``/diagnostics`` (one DiagnosticArray per
-    frame), each written
-    at the input message's bag time. A frame the pipeline rejects (malformed cloud) is skipped,
-    counted and reported with an ERROR diagnostics entry, as the node does. Raises BagError.
+    ``add_height_above_ground_field`` is true), ``<output_prefix>/ground_surface`` (the GP ground
+    surface, unless ``publish_ground_surface`` is false) and ``/diagnostics`` (one
+    DiagnosticArray per frame), each written at the input message's bag time.
+    ``output_prefix`` defaults to the input topic, so the outputs sit beside their input in a
+    bag that may hold several clouds; ``''`` gives ``/ground``, ``/obstacles`` and
+    ``/ground_surface``, the node's names in the root namespace. A frame the pipeline rejects
+    (malformed cloud) is skipped, counted and reported with an ERROR diagnostics entry, as the
+    node does. Raises BagError.
     """
     from rclpy.serialization import serialize_message
     from rosbags.rosbag2 import Writer, WriterError
@@ -480,12 +516,13 @@ def replay(inputs: Sequence, out_bag, *, topic: Optional[str] = None,
         raise BagError('--max-frames must be at least 1')
     seg_params, node_params = load_params(params_file)
     segmenter = GroundSegmenter(seg_params)
+    warm_up(log)
     window = ProcessingWindow(int(node_params.get('diagnostics_window', 50)))
     budget_ms = float(node_params.get('processing_budget_ms', 100.0))
     outputs = {name: bool(node_params[name]) for name in OUTPUT_SWITCHES}
     summary = ReplaySummary(output=str(out))
     t_start = time.perf_counter()
-    with FrameSource(inputs, topic, max_frames) as source:
+    with FrameSource(inputs, topic, max_frames, frame_id) as source:
         _check_output(out, force, source.paths)
         summary.topic, summary.note = source.topic, source.note
         if log and source.note:
@@ -499,15 +536,17 @@ def replay(inputs: Sequence, out_bag, *, topic: Optional[str] = None,
         try:
             writer = Writer(tmp, version=9, storage_plugin=plugin)
             with writer:
-                conn_ground = writer.add_connection(f'{source.topic}/ground', POINTCLOUD2,
+                prefix = source.topic if output_prefix is None else output_prefix
+                prefix = '/' + prefix.strip('/') if prefix.strip('/') else ''
+                conn_ground = writer.add_connection(f'{prefix}/ground', POINTCLOUD2,
                                                     typestore=typestore)
-                conn_obst = writer.add_connection(f'{source.topic}/obstacles', POINTCLOUD2,
+                conn_obst = writer.add_connection(f'{prefix}/obstacles', POINTCLOUD2,
                                                   typestore=typestore)
                 conn_diag = writer.add_connection(DIAGNOSTICS_TOPIC, DIAGNOSTIC_ARRAY,
                                                   typestore=typestore)
                 conn_surface = None
                 if outputs['publish_ground_surface']:
-                    conn_surface = writer.add_connection(f'{source.topic}/ground_surface',
+                    conn_surface = writer.add_connection(f'{prefix}/ground_surface',
                                                          POINTCLOUD2, typestore=typestore)
                 conns = (conn_ground, conn_obst, conn_diag, conn_surface)
                 for frame in source:

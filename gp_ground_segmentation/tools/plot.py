@@ -19,10 +19,13 @@ imported only here, lazily.
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
 import numpy as np
+
+FIGURE_METADATA_KEY = 'gp_ground_segmentation'  # PNG text chunk with the figure's numbers
 
 COLOURS = {'ground': '#2ca02c', 'obstacle': '#d62728', 'candidate': '#1f77b4',
            'critical': '#ff7f0e', 'line': '#9467bd', 'gp': '#111111',
@@ -141,7 +144,12 @@ def plot_frame(msg, out_path, *, params=None, segment=None, labels=None, title='
         raise PlotError(f'--segment {segment} is outside 0..{m - 1} (num_segments = {m})')
     result = GroundSegmenter(params).segment(xyz, details=True)
     view = segment_view(xyz, result, segment, m)
-    info = {'segment': segment, 'points': int(len(xyz))}
+    n_valid = int(np.count_nonzero(result.valid_mask))
+    n_ground = int(np.count_nonzero(result.ground_mask))
+    theta = result.hyperparameters
+    info = {'segment': segment, 'points': int(len(xyz)), 'ground_points': n_ground,
+            'sigma_f': float(theta.sigma_f), 'gain': float(theta.gain),
+            'sigma_n': float(theta.sigma_n)}
 
     fig, (ax_side, ax_top, ax_surface) = plt.subplots(
         1, 3, figsize=(25, 7.2), gridspec_kw={'width_ratios': [1.45, 1, 1.15]})
@@ -151,9 +159,6 @@ def plot_frame(msg, out_path, *, params=None, segment=None, labels=None, title='
         info['metrics'] = ground_metrics(result.ground_mask, labels, vegetation_is_ground)
     _draw_top(ax_top, xyz, result, labels, vegetation_is_ground, segment, m,
               ground_truth_from_labels)
-    theta = result.hyperparameters
-    n_valid = int(np.count_nonzero(result.valid_mask))
-    n_ground = int(np.count_nonzero(result.ground_mask))
     sub = (f'{n_valid} valid points, ground share {n_ground / max(n_valid, 1):.2f}; '
            f'theta: sigma_f {theta.sigma_f:.3g} m, a {theta.gain:.3g}, '
            f'sigma_n {theta.sigma_n:.3g} m'
@@ -167,7 +172,12 @@ def plot_frame(msg, out_path, *, params=None, segment=None, labels=None, title='
     fig.tight_layout()
     out = Path(out_path)
     out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=dpi)
+    # The figure's numbers go into the PNG too (a tEXt chunk), so a test can tell a stale
+    # figure from the code's current output.
+    metadata = ({FIGURE_METADATA_KEY: json.dumps({k: v for k, v in info.items()
+                                                  if k != 'metrics'}, sort_keys=True)}
+                if out.suffix.lower() == '.png' else None)
+    fig.savefig(out, dpi=dpi, metadata=metadata)
     plt.close(fig)
     return info
 

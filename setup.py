@@ -1,7 +1,7 @@
 # SPDX-License-Identifier: Apache-2.0
 """Install script: works for both `colcon build` (ament_python) and a plain `pip install .`.
 
-The data_files put the ament index marker, package.xml and config/*.yaml under
+The data_files put the ament index marker, package.xml, config/ and launch/ files under
 share/gp_ground_segmentation so that `ros2 run` / `ros2 pkg` find the package; setup.cfg puts the
 console scripts in lib/gp_ground_segmentation, where `ros2 run` looks for executables.
 """
@@ -21,7 +21,9 @@ setup(
         ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
         ('share/' + package_name, ['package.xml']),
         ('share/' + package_name + '/config', glob.glob(os.path.join('config', '*.yaml'))
-         + glob.glob(os.path.join('config', '*.xml'))),
+         + glob.glob(os.path.join('config', '*.xml'))
+         + glob.glob(os.path.join('config', '*.rviz'))),
+        ('share/' + package_name + '/launch', glob.glob(os.path.join('launch', '*.launch.py'))),
     ],
     python_requires='>=3.10',
     # ROS 2 Jazzy comes from PyPI here (rclpy with Fast DDS, the message packages); colcon users
@@ -31,16 +33,19 @@ setup(
         'numpy',
         'scipy',
         'threadpoolctl',  # segmenter.py caps BLAS threads per call
-        'numba',  # compiled batched SPD inverse (gp_compiled.py): gp_fit 14 -> 8 ms
+        'numba',  # the compiled GP step (gp_compiled.py), each segment at its own size
         'PyYAML',  # config.load_params_file
         'rosbags',
         'ros-jazzy-rclpy[fastrtps]',
         'ros-jazzy-common-interfaces',
     ],
     extras_require={
-        # matplotlib so that CI also runs the plotting tests instead of skipping them
-        'test': ['pytest', 'hypothesis', 'matplotlib', 'flake8'],
+        # matplotlib so that CI also runs the plotting tests instead of skipping them; Dask and
+        # Optuna so that the batch/tune tests run on a real LocalCluster there
+        'test': ['pytest', 'hypothesis', 'matplotlib', 'flake8', 'dask[distributed]', 'optuna'],
         'plot': ['matplotlib'],
+        'scale': ['dask[distributed]'],  # gp-ground-seg batch/tune --jobs/--scheduler
+        'tune': ['optuna'],  # gp-ground-seg tune
         'bench': ['pypatchworkpp', 'linefit'],
     },
     zip_safe=True,

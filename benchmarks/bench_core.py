@@ -24,6 +24,8 @@ from __future__ import annotations
 
 import argparse
 import sys
+import time
+import timeit
 from pathlib import Path
 
 import numpy as np
@@ -34,7 +36,7 @@ import common  # noqa: E402
 from gp_ground_segmentation import GroundSegmenter, SegmenterParams  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / 'RESULTS.md'
-STAGE_ORDER = ('grid', 'lines', 'gp_fit', 'predict', 'label')
+STAGE_ORDER = ('grid', 'lines', 'gp_fit', 'predict', 'label', 'structure')
 
 
 def load_frames(which):
@@ -75,7 +77,7 @@ def run(frames, runs, warmup, cold, params, reference=None):
     frame, so that the ratio of the two is insensitive to the load of the shared machine.
     """
     seg = GroundSegmenter(params)
-    stages, wall, iters, metrics, ref = {}, [], [], [], []
+    stages, wall, iters, metrics, ref, surface = {}, [], [], [], [], {}
     for i in range(warmup + runs):
         frame = frames[i % len(frames)]
         if cold:
@@ -83,8 +85,11 @@ def run(frames, runs, warmup, cold, params, reference=None):
         res, dt = common.timed(seg.segment, frame.points)
         if reference is not None:
             ref_dt = common.timed(reference, frame.points)[1]
+        surface_dt = time_surface_reads(res) if not cold else {}
         if i < warmup:
             continue
+        for k, v in surface_dt.items():
+            surface.setdefault(k, []).append(v)
         if reference is not None:
             ref.append(ref_dt * 1e3)
         wall.append(dt * 1e3)
@@ -95,7 +100,35 @@ def run(frames, runs, warmup, cold, params, reference=None):
         if m is not None:
             metrics.append(m)
     return {'stages': stages, 'wall': wall, 'iterations': iters, 'metrics': common.pool(metrics),
-            'theta': getattr(seg, 'hyperparameters', None), 'reference': ref}
+            'theta': getattr(seg, 'hyperparameters', None), 'reference': ref,
+            'surface': surface}
+
+
+def time_surface_reads(res) -> dict:
+    """ms of reading what segment() leaves lazy: the surface as the node publishes it (z_std at
+    the bin edges, then the supported points as float32) and height_above_ground per point."""
+    t0 = time.perf_counter()
+    res.ground_surface.points()
+    t1 = time.perf_counter()
+    res.height_above_ground
+    t2 = time.perf_counter()
+    return {'surface': (t1 - t0) * 1e3, 'height_above_ground': (t2 - t1) * 1e3}
+
+
+def surface_construction_us(frame, params) -> float:
+    """Median microseconds of the only surface work segment() does eagerly: building the lazy
+    GroundSurface object from arrays it already has (timed apart: it is too small to see in a
+    whole segment() call on a shared machine)."""
+    from gp_ground_segmentation.core.surface import GroundSurface
+    s = GroundSegmenter(params).segment(frame.points).ground_surface
+    m = s.num_segments
+    args = (s.r[:, 0], s.r[:, 1] - s.r[:, 0], np.ones(m, bool), s.z, np.ones(m, bool), None,
+            lambda: s.z_std)
+    counts = np.ones((m, s.num_bins), np.int64)
+    training = np.ones((m, s.num_bins), bool)
+    times = timeit.repeat(lambda: (counts.sum(axis=1) > 0, training.any(axis=1),
+                                   GroundSurface(*args)), number=200, repeat=7)
+    return min(times) / 200 * 1e6
 
 
 def stage_rows(stream, cold):
@@ -173,6 +206,20 @@ def main(argv=None):
                if m else 'no labelled frame in the set')
         lines.append(f'- {name}: optimizer iterations per frame median '
                      f'{common.fmt(common.median(r["iterations"]), 0)}; {acc}.')
+    surf = stream['surface']
+    if surf:
+        wall_med = common.median(stream['wall'])
+        build_us = surface_construction_us(frames[0], params)
+        read = {k: common.summary_ms(np.asarray(v) / 1e3) for k, v in surf.items()}
+        lines.append(
+            f"- Ground surface (issue 11), same streaming run: segment() builds only a lazy "
+            f"GroundSurface ({build_us:.1f} us, timeit, = {build_us / 1e3 / wall_med * 100:.3f}"
+            f" % of the median segment() wall time, below this machine's noise); reading it "
+            f"after segment() as the node publishes it (z_std + supported points) median "
+            f"{read['surface']['median']:.2f} ms (p95 {read['surface']['p95']:.2f}), "
+            f"height_above_ground {read['height_above_ground']['median']:.2f} ms "
+            f"(p95 {read['height_above_ground']['p95']:.2f}), i.e. segment() + surface = "
+            f"{(wall_med + read['surface']['median']) / wall_med:.3f}x segment() alone.")
     if th is not None:
         lines.append(f'- theta after the stream: sigma_f {th.sigma_f:.3g} m, a {th.gain:.3g}, '
                      f'sigma_n {th.sigma_n:.3g} m.')

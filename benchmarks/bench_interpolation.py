@@ -53,6 +53,7 @@ class _Row:
     def __init__(self, gp, s):
         self.d, self.r, self.valid = gp.d[s:s + 1], gp.r[s:s + 1], gp.valid[s:s + 1]
         self.mean = gp.mean
+        self.backend = 'numpy'  # the dense reference prediction, whatever the frame used
 
 
 def _one_segment(gp, s):
@@ -65,7 +66,7 @@ def _one_segment(gp, s):
 def _one_solution(sol, s):
     from gp_ground_segmentation.core.gp import GPSolution
     return GPSolution(sol.theta, sol.alpha[s:s + 1], sol.a_inv[s:s + 1], sol.lml, sol.jitter,
-                      sol.kernel[s:s + 1])
+                      None if sol.kernel is None else sol.kernel[s:s + 1])
 
 
 def main() -> int:

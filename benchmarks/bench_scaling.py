@@ -46,7 +46,7 @@ import common  # noqa: E402
 from gp_ground_segmentation import GroundSegmenter, SegmenterParams  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / 'RESULTS.md'
-STAGES = ('grid', 'lines', 'gp_fit', 'predict', 'label')
+STAGES = ('grid', 'lines', 'gp_fit', 'predict', 'label', 'structure')
 DEFAULT_SIZES = (10_000, 30_000, 100_000, 300_000, 1_000_000, 2_000_000)
 DEFAULT_GRIDS = ((60, 32), (120, 32), (240, 32), (120, 16), (120, 64), (240, 64), (360, 96))
 MB = 1024 * 1024

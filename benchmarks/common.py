@@ -45,7 +45,7 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 from gp_ground_segmentation.tools.evaluation import (  # noqa: E402
-    ground_truth_from_labels, truth_metrics)
+    RELLIS_3D, ground_truth_from_labels, truth_metrics)
 
 
 def _find_data_dir() -> Path:
@@ -136,7 +136,7 @@ def load_labeled_kitti(data_dir: Path = DATA_DIR) -> Optional[Dataset]:
     pts = np.ascontiguousarray(read_kitti_bin(bin_path), dtype=np.float32)
     labels = read_semantickitti_labels(label_path, expected_points=len(pts))
     truth, evaluated = ground_truth_from_labels(labels)
-    frame = Frame('semantickitti_000000', pts, True, truth, evaluated)
+    frame = Frame('semantickitti_000000', pts, True, truth, evaluated, KITTI_SENSOR_HEIGHT_M)
     return Dataset('kitti_labeled', [frame], 'SemanticKITTI scan, labels (ground '
                    '40/44/48/49/60/72; 0/1 ignored; 70 non-ground)', 'real')
 
@@ -168,12 +168,6 @@ def load_kitti00_labeled(data_dir: Path = DATA_DIR) -> Optional[Dataset]:
                    '(ground 40/44/48/49/60/72; 0/1 ignored; 70 non-ground)', 'real')
 
 
-# RELLIS-3D ontology (not SemanticKITTI's): ground = 1 dirt, 3 grass, 10 asphalt, 23 concrete,
-# 31 puddle, 33 mud; 0 void is left out (it also holds every (0, 0, 0) no-return point).
-RELLIS_GROUND_CLASSES = (1, 3, 10, 23, 31, 33)
-RELLIS_IGNORED_CLASSES = (0,)
-
-
 def rellis_mount_height(points: np.ndarray, truth: np.ndarray) -> float:
     """Sensor height over the ground (m): minus the median z of true ground at 3-10 m range.
 
@@ -191,8 +185,8 @@ def load_rellis(data_dir: Path = DATA_DIR) -> Optional[Dataset]:
     if _missing(bin_path) or _missing(label_path):
         return None
     pts, classes = _read_labeled_pair(bin_path, label_path)
-    truth = np.isin(classes, RELLIS_GROUND_CLASSES)
-    evaluated = ~np.isin(classes, RELLIS_IGNORED_CLASSES)
+    # RELLIS-3D ontology, not SemanticKITTI's (gp_ground_segmentation.tools.evaluation)
+    truth, evaluated = ground_truth_from_labels(classes, ontology=RELLIS_3D)
     # The intensity is normalised to ~0..0.012, not KITTI's 0..1 remission: treated as absent so
     # intensity-based steps tuned for remission (Patchwork++'s RNR) are not misled.
     frame = Frame('rellis3d_000001', pts, False, truth, evaluated,

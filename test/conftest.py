@@ -85,10 +85,13 @@ class RosHarness:
             self.peer = rclpy.create_node('gp_test_peer', context=self.context)
             self.lock = threading.Lock()
             self.ground, self.obstacles, self.diagnostics = [], [], []
+            self.surface = []
             self.peer.create_subscription(PointCloud2, 'ground', self._collect(self.ground),
                                           OUTPUT_QOS)
             self.peer.create_subscription(PointCloud2, 'obstacles',
                                           self._collect(self.obstacles), OUTPUT_QOS)
+            self.peer.create_subscription(PointCloud2, 'ground_surface',
+                                          self._collect(self.surface), OUTPUT_QOS)
             self.peer.create_subscription(DiagnosticArray, '/diagnostics',
                                           self._collect(self.diagnostics), 10)
             # A RELIABLE writer matches the best-effort subscription (effective: best effort).
@@ -102,8 +105,11 @@ class RosHarness:
             self.thread.start()
             assert wait_for(lambda: self.pub.get_subscription_count() > 0, 10.0), \
                 'node subscription not discovered'
-            assert wait_for(lambda: self.node.count_subscribers('/ground') > 0
-                            and self.node.count_subscribers('/obstacles') > 0, 10.0)
+            # resolved names: context_args may remap or namespace the outputs
+            outputs = [p.topic_name for p in self.node.publishers
+                       if p.topic_name.endswith(('/ground', '/obstacles'))]
+            assert wait_for(lambda: all(self.node.count_subscribers(t) > 0 for t in outputs),
+                            10.0)
         except BaseException:
             self.close()
             raise
@@ -120,6 +126,12 @@ class RosHarness:
             g = [m for m in self.ground if m.header.stamp == stamp]
             o = [m for m in self.obstacles if m.header.stamp == stamp]
         return (g[-1], o[-1]) if g and o else None
+
+    def surface_for(self, stamp):
+        """The ground_surface message whose header stamp equals ``stamp``, or None."""
+        with self.lock:
+            found = [m for m in self.surface if m.header.stamp == stamp]
+        return found[-1] if found else None
 
     def publish_and_wait(self, msg, timeout=30.0):
         """Publish ``msg`` and wait for both outputs with its stamp (one re-publish if the

@@ -87,10 +87,15 @@ def test_counts_headers_and_partition(replayed, input_frames):
     out, summary = replayed
     assert summary.frames == len(input_frames) == 6 and summary.skipped == 0
     topics = read_bag(out)
-    assert set(topics) == {f'{TOPIC}/ground', f'{TOPIC}/obstacles', '/diagnostics'}
+    assert set(topics) == {f'{TOPIC}/ground', f'{TOPIC}/obstacles', f'{TOPIC}/ground_surface',
+                           '/diagnostics'}
     ground, obstacles = topics[f'{TOPIC}/ground'], topics[f'{TOPIC}/obstacles']
     diags = topics['/diagnostics']
-    assert len(ground) == len(obstacles) == len(diags) == len(input_frames)
+    surfaces = topics[f'{TOPIC}/ground_surface']
+    assert len(ground) == len(obstacles) == len(diags) == len(surfaces) == len(input_frames)
+    for (t_in, m_in), (t_s, m_s) in zip(input_frames, surfaces):
+        assert t_s == t_in and m_s.header.stamp == m_in.header.stamp
+        assert [f.name for f in m_s.fields] == ['x', 'y', 'z', 'z_std'] and m_s.width > 1000
     reference = GroundSegmenter()  # same default params, same frame order -> same warm start
     n_ground = 0
     for (t_in, m_in), (t_g, m_g), (t_o, m_o), (t_d, m_d) in zip(
@@ -141,7 +146,8 @@ def test_cli_refuses_overwrite_then_force_replaces(tmp_path, capsys):
     assert not (out / 'marker').exists()
     assert (out / 'metadata.yaml').exists() and (out / 'out.mcap').exists()
     counts = {k: len(v) for k, v in read_bag(out).items()}
-    assert counts == {f'{TOPIC}/ground': 1, f'{TOPIC}/obstacles': 1, '/diagnostics': 1}
+    assert counts == {f'{TOPIC}/ground': 1, f'{TOPIC}/obstacles': 1,
+                      f'{TOPIC}/ground_surface': 1, '/diagnostics': 1}
     assert [p.name for p in tmp_path.iterdir()] == ['out']  # no temporary siblings left
 
 
@@ -182,11 +188,11 @@ def test_interrupted_replay_leaves_no_bag(tmp_path, monkeypatch):
     real = pipeline.process_cloud
     calls = []
 
-    def flaky(msg, seg):
+    def flaky(msg, seg, **outputs):
         calls.append(1)
         if len(calls) == 3:
             raise KeyboardInterrupt
-        return real(msg, seg)
+        return real(msg, seg, **outputs)
     monkeypatch.setattr(pipeline, 'process_cloud', flaky)
     out = tmp_path / 'out'
     with pytest.raises(KeyboardInterrupt):
@@ -379,3 +385,20 @@ def test_subprocess_truncated_bag_no_traceback(tmp_path):
     assert 'Traceback' not in proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1
     assert not (tmp_path / 'out').exists()
+
+
+def test_replay_output_switches_from_params_file(tmp_path, input_frames):
+    """--params switches the outputs as in the node: no surface, height_above_ground field."""
+    from gp_ground_segmentation.tools.bag import replay
+    params = tmp_path / 'params.yaml'
+    params.write_text('ground_segmentation:\n  ros__parameters:\n'
+                      '    publish_ground_surface: false\n'
+                      '    add_height_above_ground_field: true\n')
+    out = tmp_path / 'out'
+    replay([BAG], out, params_file=str(params), max_frames=1)
+    topics = read_bag(out)
+    assert set(topics) == {f'{TOPIC}/ground', f'{TOPIC}/obstacles', '/diagnostics'}
+    (_, m_in), (_, m_g) = input_frames[0], topics[f'{TOPIC}/ground'][0]
+    assert [f.name for f in m_g.fields] == [f.name for f in m_in.fields] + [
+        'height_above_ground']
+    assert m_g.point_step == m_in.point_step + 4

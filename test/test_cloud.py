@@ -19,7 +19,7 @@ from builtin_interfaces.msg import Time
 
 from gp_ground_segmentation.ros.cloud import (
     POINTFIELD_DTYPES, CloudFormatError, cloud_xyz, fields_dtype, make_cloud, point_rows,
-    read_cloud, subset_cloud)
+    read_cloud, subset_cloud, xyz_dtype)
 
 DATA = Path(__file__).resolve().parents[1].parent / 'shared' / 'data'
 STRUCT_CHARS = {1: 'b', 2: 'B', 3: 'h', 4: 'H', 5: 'i', 6: 'I', 7: 'f', 8: 'd'}
@@ -427,3 +427,19 @@ def test_real_kitti_scan_round_trip():
     assert g.width + o.width == msg.width
     rows = np.frombuffer(raw, np.uint8).reshape(-1, 16)
     assert bytes(g.data) == rows[ground].tobytes() and bytes(o.data) == rows[~ground].tobytes()
+
+
+@pytest.mark.parametrize('order', ['<', '>'])
+def test_cloud_xyz_keeps_float32_fields_float32_and_column_major(order):
+    dt = np.dtype({'names': ['x', 'y', 'z', 'i'], 'formats': [order + 'f4'] * 3 + ['u1'],
+                   'offsets': [0, 4, 8, 12], 'itemsize': 16})
+    pts = np.zeros(5, dtype=dt)
+    xyz = np.random.default_rng(2).normal(size=(5, 3)).astype(np.float32)
+    pts['x'], pts['y'], pts['z'] = xyz.T
+    assert xyz_dtype(pts) == np.float32
+    out = cloud_xyz(pts, dtype=None)
+    assert out.dtype == np.float32 and out.dtype.isnative and out.flags.f_contiguous
+    np.testing.assert_array_equal(out, xyz)
+    assert cloud_xyz(pts).dtype == np.float64  # the default stays float64
+    wide = np.zeros(5, dtype=[('x', '<f4'), ('y', '<f4'), ('z', '<f8')])
+    assert xyz_dtype(wide) == np.float64 and cloud_xyz(wide, dtype=None).dtype == np.float64

@@ -10,7 +10,7 @@ from conftest import REPO
 
 from gp_ground_segmentation import SegmenterParams, describe_params
 from gp_ground_segmentation.ros.config import (
-    NODE_NAME, NODE_PARAMS, ParameterConfigError, all_param_specs, load_params_file,
+    NODE_PARAMS, PARAMS_FILE_KEY, ParameterConfigError, all_param_specs, load_params_file,
     node_param_defaults, render_params_table, render_params_yaml)
 
 PARAMS_YAML = REPO / 'config' / 'params.yaml'
@@ -24,8 +24,8 @@ def _write(tmp_path, text, name='p.yaml'):
 
 def test_shipped_yaml_lists_exactly_all_params_with_defaults():
     doc = yaml.safe_load(PARAMS_YAML.read_text())
-    assert list(doc) == [NODE_NAME]
-    values = doc[NODE_NAME]['ros__parameters']
+    assert list(doc) == [PARAMS_FILE_KEY]
+    values = doc[PARAMS_FILE_KEY]['ros__parameters']
     expected = {f.name: f.default for f in dataclasses.fields(SegmenterParams)}
     expected.update(node_param_defaults())
     assert set(values) == set(expected)
@@ -52,7 +52,8 @@ def test_load_shipped_file_gives_defaults():
     assert seg == SegmenterParams()
     assert node == node_param_defaults()
     assert node == {'processing_budget_ms': 100.0, 'queue_size': 1, 'diagnostics_period_s': 1.0,
-                    'diagnostics_window': 50}
+                    'diagnostics_window': 50, 'publish_ground_surface': True,
+                    'add_height_above_ground_field': False}
 
 
 @pytest.mark.parametrize('key', ['ground_segmentation', '/ground_segmentation', '/**',

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from gp_ground_segmentation.tools.evaluation import (
-    GROUND_CLASSES, IGNORED_CLASSES, ground_metrics, ground_truth_from_labels, truth_metrics)
+    GROUND_CLASSES, IGNORED_CLASSES, RELLIS_3D, ground_metrics, ground_truth_from_labels,
+    truth_metrics)
 
 
 def test_truth_metrics_hand_computed():
@@ -71,3 +72,20 @@ def test_length_mismatch_is_a_value_error():
         ground_metrics(np.zeros(4, bool), np.zeros(3, np.uint32))
     with pytest.raises(ValueError):
         truth_metrics(np.zeros(4, bool), np.zeros(5, bool))
+
+
+def test_rellis3d_ontology_has_its_own_ground_and_void():
+    # RELLIS-3D ids: 1 dirt, 3 grass, 10 asphalt, 23 concrete, 31 puddle, 33 mud are ground;
+    # 0 void is ignored; 4 tree, 18 fence, 19 bush are not ground. 40 (road in SemanticKITTI)
+    # means nothing in RELLIS and must not count as ground there.
+    classes = np.array([0, 1, 3, 10, 23, 31, 33, 4, 18, 19, 40], np.uint32)
+    truth, evaluated = ground_truth_from_labels(classes, ontology=RELLIS_3D)
+    assert truth.tolist() == [False] + [True] * 6 + [False] * 4
+    assert evaluated.tolist() == [False] + [True] * 10
+    pred = np.isin(classes, (0, 3, 19))  # one void (ignored), one grass (TP), one bush (FP)
+    m = ground_metrics(pred, classes, ontology=RELLIS_3D)
+    assert (m['tp'], m['fp'], m['fn'], m['tn']) == (1, 1, 5, 3)
+    # the same ids read as SemanticKITTI: only 40 is ground, 0 and 1 are ignored
+    assert ground_truth_from_labels(classes)[0].tolist() == [False] * 10 + [True]
+    with pytest.raises(ValueError, match='vegetation_is_ground'):
+        ground_truth_from_labels(classes, vegetation_is_ground=True, ontology=RELLIS_3D)

@@ -394,31 +394,18 @@ def test_fit_zero_cap_and_empty_frame_return_clipped_start():
     np.testing.assert_array_equal(theta, [0.5, 2.0, 0.05])
 
 
-def count_factorisations(gp):
-    """Wrap gp.kernel (called once per uncached solve) with a counter."""
-    calls = [0]
-    original = gp.kernel
-
-    def counted(theta):
-        calls[0] += 1
-        return original(theta)
-    gp.kernel = counted
-    return calls
-
-
 def test_fit_respects_evaluation_cap():
     worst = {}
     for seed in range(8):
         r, z, d, mask = random_problem(80 + seed, m_count=5, n_count=12)
         gp = FrameGP(r, z, d, mask)
-        calls = count_factorisations(gp)
         rng = np.random.default_rng(seed)
         theta0 = np.exp(rng.uniform(np.log([0.05, 0.2, 0.01]), np.log([5.0, 50.0, 0.5])))
         for cap in (1, 2, 3, 5):
             gp.solve(theta0)  # the segmenter has always factorised the start already
-            calls[0] = 0
+            before = gp.factorisations
             gp.fit(theta0, BOUNDS, cap)
-            worst[cap] = max(worst.get(cap, 0), calls[0])
+            worst[cap] = max(worst.get(cap, 0), gp.factorisations - before)
     assert all(worst[cap] <= cap for cap in worst), worst
 
 
@@ -446,37 +433,56 @@ def test_cholesky_failure_falls_back_without_raising():
 
 @pytest.mark.skipif(not gp_compiled.AVAILABLE, reason='numba not installed')
 @pytest.mark.parametrize('seed', range(4))
-def test_compiled_factorisation_equals_numpy(monkeypatch, seed):
-    """The numba kernel and the numpy reference give the same solution, LML and gradient."""
+@pytest.mark.parametrize('anchor', [False, True])
+def test_compiled_step_equals_numpy(seed, anchor):
+    """The compiled GP step and the numpy reference: same solution, LML, gradient, prediction."""
     r, z, d, mask = random_problem(seed)
+    m_count = mask.shape[0]
+    ground = (GroundAnchor(-1.7, 0.01, np.arange(m_count) % 3 > 0, np.full(m_count, 2.0))
+              if anchor else None)
+    noise = np.where(np.random.default_rng(seed).random(mask.shape) < 0.1, 1e4, 0.0)
     theta = np.log([0.7, 1.5, 0.08])
-    ref_gp = FrameGP(r, z, d, mask, backend='numpy')
+    ref_gp = FrameGP(r, z, d, mask, noise, anchor=ground, backend='numpy')
+    fast_gp = FrameGP(r, z, d, mask, noise, anchor=ground, backend='numba')
+    assert fast_gp.counts.min() < fast_gp.n_max  # segments of different sizes in the batch
     ref_lml, ref_grad = ref_gp.lml_and_gradient(theta)
-    ref = ref_gp.solve(np.exp(theta))
-    fast_gp = FrameGP(r, z, d, mask, backend='numba')
     lml, grad = fast_gp.lml_and_gradient(theta)
-    fast = fast_gp.solve(np.exp(theta))
+    ref, fast = ref_gp.solve(np.exp(theta)), fast_gp.solve(np.exp(theta))
+    assert fast.gradient is not None and ref.gradient is None  # really two paths
     assert lml == pytest.approx(ref_lml, rel=1e-10)
-    np.testing.assert_allclose(grad, ref_grad, rtol=1e-8)
+    np.testing.assert_allclose(grad, ref_grad, rtol=1e-9)
     np.testing.assert_allclose(fast.a_inv, ref.a_inv, rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(fast.alpha, ref.alpha, rtol=1e-9, atol=1e-12)
+    r_star = np.linspace(0.0, 40.0, 7)[None, :].repeat(fast_gp.segments.size, axis=0)
+    d_star = np.full_like(r_star, 1.3)
+    ref_mean, ref_std = ref_gp.predict(ref, r_star, d_star)
+    mean, std = fast_gp.predict(fast, r_star, d_star)
+    np.testing.assert_allclose(mean, ref_mean, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(std, ref_std, rtol=1e-7, atol=1e-9)
+    assert fast_gp.predict(fast, r_star, d_star, with_std=False)[1] is None
 
 
-def test_compiled_kernel_reports_non_pd_matrices():
-    a = np.stack([np.eye(3) * 2.0, np.array([[1.0, 2.0, 0.0], [2.0, 1.0, 0.0], [0, 0, 1.0]])])
+def test_compiled_step_reports_non_pd_matrices():
+    r = np.array([[0.0, 1.0, 2.0], [5.0, 5.0, 0.0]])
+    d = np.ones((2, 3))
     z = np.ones((2, 3))
-    ok, logdet, alpha = gp_compiled.spd_inverse_batched(a.copy(), z)
+    counts = np.array([3, 2])
+    noise = np.array([[0.0, 0.0, 0.0], [-2.0, 0.0, 0.0]])  # negative variance: not PD
+    ok, logdet, alpha, a_inv, _ = gp_compiled.solve_batched(r, d, z, noise, counts,
+                                                            1.0, 1.0, 0.1)
     assert ok.tolist() == [True, False]
-    assert logdet[0] == pytest.approx(3 * np.log(2.0))
-    np.testing.assert_allclose(alpha[0], 0.5)
+    k = np.exp(-np.subtract.outer(r[0], r[0]) ** 2 / 2.0) + 0.01 * np.eye(3)
+    assert logdet[0] == pytest.approx(np.linalg.slogdet(k)[1], rel=1e-12)
+    np.testing.assert_allclose(a_inv[0], np.linalg.inv(k), rtol=1e-10)
+    np.testing.assert_allclose(alpha[0], np.linalg.solve(k, z[0]), rtol=1e-10)
 
 
 def test_broken_compiled_kernel_falls_back_to_numpy(monkeypatch):
     """If numba cannot compile or run on a platform, the frame is still solved (numpy)."""
-    def broken(a, z):
+    def broken(*args):
         raise RuntimeError('no LLVM here')
     monkeypatch.setattr(gp_compiled, 'AVAILABLE', True)
-    monkeypatch.setattr(gp_compiled, 'spd_inverse_batched', broken)
+    monkeypatch.setattr(gp_compiled, 'solve_batched', broken)
     r, z, d, mask = random_problem(1)
     gp = FrameGP(r, z, d, mask, backend='numba')
     ref = FrameGP(r, z, d, mask, backend='numpy').solve((0.7, 1.5, 0.08))

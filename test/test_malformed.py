@@ -25,8 +25,9 @@ Expected outputs of the degenerate but valid clouds (defined here, checked in bo
   of airborne echoes, so only the conservation is defined (a fresh segmenter calls it ground,
   one warm-started on flat scenes calls its near part obstacles);
   two ground points + one 1.7 m above one of them -> that one is an obstacle, the others ground;
-  a vertical wall                  -> its bottom row is ground, everything higher than the
-                                      bottom + max_threshold_m is obstacle;
+  a vertical wall                  -> nothing higher than the bottom + max_threshold_m is ground,
+                                      and the rows below (the wall's foot, a column of returns
+                                      right above them) are obstacle too (structure test);
   a flat scene with a box, in front of, behind or around the sensor, in any layout -> >= 97 % of
   the ground points are ground, every box point higher than 0.4 m is an obstacle.
 """
@@ -229,10 +230,11 @@ def expect_wall(built, g, o):
     z = built.xyz[:, 2]
     zmin = z.min()
     limit = zmin + SegmenterParams().max_threshold_m + 1e-3
-    assert np.all(o[:, 2] > zmin)  # the bottom row is never an obstacle
     assert np.all(g[:, 2] <= limit)  # nothing above bottom + max_threshold_m is ground
-    assert np.isclose(g[:, 2], zmin).sum() == np.isclose(z, zmin).sum() > 0
-    assert o.shape[0] >= int((z > limit).sum()) > 0
+    # the bottom rows pass the height test, but rows 0.2-0.7 m above them stand at the same xy:
+    # they are the foot of the wall, not ground (without the structure test they were ground)
+    assert g.shape[0] == 0
+    assert o.shape[0] == z.size
 
 
 # --- the cases --------------------------------------------------------------------------------
@@ -434,7 +436,9 @@ CASES = [
     Case('all points identical', lambda s: encode(
         header(s), np.tile([7.0, 1.0, GROUND_Z], (300, 1))),
          expect=expect_all_ground),
-    Case('vertical wall', lambda s: encode(header(s), _wall()), expect=expect_wall),
+    # a lone wall 10 m ahead is not what a sensor sees around itself: reported as such
+    Case('vertical wall', lambda s: encode(header(s), _wall()), expect=expect_wall,
+         warn=('not look sensor-centred',)),
     Case('points only behind the sensor', lambda s: encode(
         header(s), scene(front='behind')[0], tags={'is_box': scene(front='behind')[1]}),
         expect=expect_scene),

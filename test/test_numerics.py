@@ -294,8 +294,8 @@ def _fail_first_cholesky_calls(monkeypatch, count):
             raise np.linalg.LinAlgError('injected')
         return real(a)
     # the compiled kernel (if used) reports every matrix as not PD: numpy's path runs
-    monkeypatch.setattr(gp_compiled, 'spd_inverse_batched',
-                        lambda a, z: (np.zeros(a.shape[0], dtype=bool), None, None))
+    monkeypatch.setattr(gp_compiled, 'solve_batched',
+                        lambda r, *args: (np.zeros(r.shape[0], dtype=bool),) + (None,) * 4)
     monkeypatch.setattr(np.linalg, 'cholesky', flaky)
     return state
 
@@ -442,9 +442,9 @@ def test_broken_compiled_kernel_makes_that_segmenter_use_numpy(ramp_points, monk
     params = SegmenterParams(optimizer_first_frame_evaluations=3)
     reference = GroundSegmenter(params, backend='numpy').segment(ramp_points)
 
-    def broken(a, z):
+    def broken(*args):
         raise RuntimeError('no LLVM here')
-    monkeypatch.setattr(gp_compiled, 'spd_inverse_batched', broken)
+    monkeypatch.setattr(gp_compiled, 'solve_batched', broken)
     seg = GroundSegmenter(params, backend='numba')
     res = seg.segment(ramp_points)
     assert seg.backend == 'numpy'

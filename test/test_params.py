@@ -17,7 +17,8 @@ DEFAULTS = SegmenterParams()
 CROSS = {'slope_floor', 'slope_ceiling', 'min_length_factor', 'max_length_factor',
          'sigma_f_init_m', 'sigma_f_min_m', 'sigma_f_max_m', 'length_scale_gain_init',
          'length_scale_gain_min', 'length_scale_gain_max', 'sigma_n_init_m', 'sigma_n_min_m',
-         'sigma_n_max_m'}
+         'sigma_n_max_m', 'ground_threshold_m', 'max_threshold_m', 'structure_rise_m',
+         'structure_max_height_m'}
 RANGED = [f for f in FIELDS if f.metadata.get('min') is not None
           or f.metadata.get('max') is not None]
 NUMERIC = [f for f in FIELDS if not isinstance(f.default, bool)]
@@ -109,6 +110,10 @@ def test_int_accepted_for_float_fields():
     (dict(length_scale_gain_init=0.01), 'length_scale_gain_init'),
     (dict(sigma_n_init_m=3.0), 'sigma_n_init_m'),
     (dict(sigma_n_init_m=0.001), 'sigma_n_init_m'),
+    (dict(ground_threshold_m=0.5), 'ground_threshold_m'),
+    (dict(ground_threshold_m=0.2, max_threshold_m=0.1), 'ground_threshold_m'),
+    (dict(structure_rise_m=0.7), 'structure_rise_m'),
+    (dict(structure_rise_m=0.3, structure_max_height_m=0.2), 'structure_rise_m'),
 ])
 def test_cross_field_rules(changes, field):
     # every value alone is inside its own range: only the cross-field rule can reject it
@@ -117,6 +122,18 @@ def test_cross_field_rules(changes, field):
         assert f.metadata['min'] <= value <= f.metadata['max']
     with pytest.raises(ValueError, match=f'^{field}:'):
         dataclasses.replace(DEFAULTS, **changes).validate()
+
+
+def test_ground_threshold_is_never_capped_silently():
+    # issue 10, bug 8: 0.3, 0.5 and 2.0 used to give the same labels (all cut to the 0.3 cap)
+    # while the node accepted up to 10. Now a threshold above the cap is refused, and the
+    # message says which parameter to change first (ros2 param set takes one at a time).
+    with pytest.raises(ValueError, match='^ground_threshold_m: .*raise max_threshold_m first'):
+        DEFAULTS.replace(ground_threshold_m=2.0)
+    raised = DEFAULTS.replace(max_threshold_m=2.0).replace(ground_threshold_m=2.0)
+    assert raised.ground_threshold_m == 2.0
+    assert DEFAULTS.replace(ground_threshold_m=DEFAULTS.max_threshold_m).ground_threshold_m \
+        == DEFAULTS.max_threshold_m
 
 
 def test_cross_field_rules_accept_inits_on_their_bounds():
@@ -154,7 +171,7 @@ def test_describe_params_lists_every_field():
 
 # Words that state a unit (or that the quantity has none) in a description.
 UNIT_TOKENS = ('(m)', '(m ', 'm per', 'dimensionless', 'ratio', 'factor', 'multiplier',
-               'dz/dr', 'slope', 'degrees')
+               'dz/dr', 'slope', 'degrees', '(rad')
 
 
 def _unit_cases():

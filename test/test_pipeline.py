@@ -102,9 +102,19 @@ def test_organized_cloud_with_row_padding():
 def test_same_split_as_the_segmenter_on_xyz():
     xyz = _scene(seed=3)
     msg = _msg(xyz.astype(np.float32))
-    out = process_cloud(msg, GroundSegmenter(SegmenterParams()))
-    direct = GroundSegmenter(SegmenterParams()).segment(xyz.astype(np.float32).astype(np.float64))
-    assert np.array_equal(out.result.ground_mask, direct.ground_mask)
+    seen = []
+
+    class Spy(GroundSegmenter):
+        def segment(self, points, details=False):
+            seen.append(points.dtype)
+            return super().segment(points, details)
+    spy = Spy(SegmenterParams())
+    out = process_cloud(msg, spy)
+    assert seen == [np.float32]  # float32 fields reach the segmenter as float32
+    direct = GroundSegmenter(SegmenterParams())
+    direct_result = direct.segment(xyz.astype(np.float32).astype(np.float64))
+    assert np.array_equal(out.result.ground_mask, direct_result.ground_mask)
+    assert spy.hyperparameters == direct.hyperparameters  # the same cold start
 
 
 def test_empty_cloud():
@@ -158,7 +168,8 @@ def _fake_output(total_ms=10.0, n=100, n_ground=60, n_invalid=5, stats=None):
     valid[:n_invalid] = False
     ground = np.zeros(n, bool)
     ground[n_invalid:n_invalid + n_ground] = True
-    timings = {'grid': 1.0, 'lines': 1.0, 'gp_fit': 5.0, 'predict': 1.0, 'label': 1.0,
+    timings = {'grid': 1.0, 'lines': 1.0, 'gp_fit': 4.5, 'predict': 1.0, 'label': 1.0,
+               'structure': 0.5,
                'total': total_ms - 2.0}
     res = SegmentationResult(ground, valid, np.zeros(n), Hyperparameters(0.5, 2.0, 0.05),
                              timings, dict(stats or {'cholesky_fallbacks': 1}))
@@ -230,3 +241,54 @@ def test_window_resize_keeps_recent_frames():
     w.resize(2)
     v = _values(diagnostics_status(w, budget_ms=100.0))
     assert v['total_ms_mean'] == '11.500' and v['window_frames'] == '2'
+
+
+def test_input_warning_stays_warn_over_the_window():
+    # 14 frames whose stamps go backwards, then clean ones: WARN until the window has slid past.
+    w = ProcessingWindow(window=20)
+    for i in range(14):
+        w.record_received('velo', now=i / 10)
+        w.record_frame(_fake_output(), 'velo', ['header stamp went backwards by 0.100 s'])
+    w.record_received('velo', now=1.4)
+    w.record_frame(_fake_output(), 'velo', [])
+    s = diagnostics_status(w, budget_ms=100.0, now=1.4)
+    assert s.level == DiagnosticStatus.WARN, s.message
+    assert 'backwards' in s.message and '14 frame(s)' in s.message
+    assert _values(s)['input_warnings_in_window'] == '14'
+    for i in range(19):
+        w.record_received('velo', now=1.5 + i / 10)
+        w.record_frame(_fake_output(), 'velo', [])
+    s = diagnostics_status(w, budget_ms=100.0, now=3.4)
+    assert s.level == DiagnosticStatus.OK, s.message
+
+
+def test_input_rate_decays_when_input_stops():
+    w = ProcessingWindow(window=50)
+    for i in range(50):
+        w.record_received('velo', now=i / 10)
+    assert float(_values(diagnostics_status(w, budget_ms=100.0, now=4.95))['input_rate_hz']) \
+        == pytest.approx(10.0)
+    rates = [float(_values(diagnostics_status(w, budget_ms=100.0, now=4.9 + silence))
+                   ['input_rate_hz']) for silence in (1.0, 6.0, 60.0)]
+    assert rates[0] < 9.0 and rates[1] < 5.0 and rates[2] < 1.0
+    assert rates == sorted(rates, reverse=True)
+
+
+def test_cold_first_frame_does_not_turn_the_budget_warn():
+    # The first frame learns theta from scratch (40 evaluations, compiled kernel loading):
+    # one slow frame then fast ones is OK; slow frames after it still WARN.
+    w = ProcessingWindow(window=50)
+    w.record_received('velo', now=0.0)
+    w.record_frame(_fake_output(total_ms=850.0), 'velo')
+    s = diagnostics_status(w, budget_ms=100.0, now=0.0)
+    assert s.level == DiagnosticStatus.WARN and 'budget' in s.message  # nothing else to judge
+    for i in range(2):
+        w.record_received('velo', now=0.1 * (i + 1))
+        w.record_frame(_fake_output(total_ms=60.0), 'velo')
+    s = diagnostics_status(w, budget_ms=100.0, now=0.2)
+    assert s.level == DiagnosticStatus.OK, s.message
+    assert _values(s)['total_ms_max'] == '850.000'  # still shown in the timings
+    w.record_received('velo', now=0.3)
+    w.record_frame(_fake_output(total_ms=300.0), 'velo')
+    s = diagnostics_status(w, budget_ms=100.0, now=0.3)
+    assert s.level == DiagnosticStatus.WARN and 'budget' in s.message

@@ -40,8 +40,13 @@ def test_sloped_scene_recall_and_precision(scans, name):
     scan = scans[name]
     _, result = _stream(scan.points)
     m = truth_metrics(result.ground_mask, scan.is_ground)
-    assert m['recall'] >= 0.97, m
-    assert m['precision'] >= 0.95, m
+    # measured (defaults, 3rd streamed frame): recall 0.967-0.980, precision 0.989-0.998,
+    # F1 0.980-0.988. The structure test trades ~0.8 points of recall (the ground strip within
+    # a few cm of wall and car feet) for 3-4 points of precision (without it: R 0.975-0.987,
+    # P 0.953-0.963, F1 0.966-0.970)
+    assert m['recall'] >= 0.965, m
+    assert m['precision'] >= 0.985, m
+    assert m['f1'] >= 0.978, m
 
 
 @pytest.mark.parametrize('name', SLOPED + ('hill',))
@@ -103,8 +108,8 @@ def test_real_semantickitti_frame_f1_and_recall():
     labels = read_semantickitti_labels(LABELED_LABELS, expected_points=len(points))
     _, result = _stream(points, frames=3)
     m = ground_metrics(result.ground_mask, labels)
-    assert m['f1'] >= 0.965, m  # measured 0.970 (P 0.967, R 0.974), 3 frames streamed
-    assert m['recall'] >= 0.97, m
+    assert m['f1'] >= 0.97, m  # measured 0.974 (P 0.980, R 0.967), 3 frames streamed
+    assert m['recall'] >= 0.963, m
 
 
 @needs_data
@@ -182,6 +187,32 @@ def test_float32_and_float64_give_the_same_labels(scans):
     assert (r32.ground_mask == r64.ground_mask).mean() > 0.999
 
 
+VLP16_PCD = DATA / 'sensors' / 'velodyne_vlp16.pcd'
+
+
+@pytest.mark.skipif(not VLP16_PCD.exists(), reason=f'{VLP16_PCD} not present')
+def test_float32_input_and_its_float64_copy_give_the_same_cold_start():
+    """The grid decides in float64, so float32 rounding cannot move the cold-start theta.
+
+    On this scan float32 binning used to move 19 points across segment borders and 14
+    candidates, and the cold theta's a by 7 % (0.770 vs 0.722).
+    """
+    from gp_ground_segmentation.tools.io import read_points_file
+    arr = read_points_file(VLP16_PCD)
+    p32 = np.stack([arr['x'], arr['y'], arr['z']], axis=1).astype(np.float32)
+    seg32, seg64 = GroundSegmenter(), GroundSegmenter()
+    r32, r64 = seg32.segment(p32), seg64.segment(p32.astype(np.float64))
+    assert seg32.hyperparameters == seg64.hyperparameters
+    # only the last interpolation step runs in the input's precision: a point within
+    # float32 round-off of its threshold may flip, and with it the structure test's verdict
+    # on the ground points around it (its rise/step limits are thresholds on z - z_hat too):
+    # measured 24 of 14k points with the defaults
+    feet32, feet64 = r32.stats.pop('structure_feet', 0), r64.stats.pop('structure_feet', 0)
+    assert r32.stats == r64.stats
+    assert abs(feet32 - feet64) <= 30
+    assert (r32.ground_mask != r64.ground_mask).sum() <= 30
+
+
 @pytest.mark.parametrize('n', [0, 1, 2, 3, 10])
 def test_tiny_and_empty_clouds(n):
     rng = np.random.default_rng(n)
@@ -257,7 +288,10 @@ def test_details_are_consistent(scans):
     # labels follow from the reported heights and thresholds
     z = scan.points[d.valid_index, 2]
     recomputed = z - result.ground_height[d.valid_index] <= d.threshold + 1e-6
+    assert (d.structure_feet <= recomputed).all()  # the structure test only takes ground away
+    recomputed &= ~d.structure_feet
     assert (recomputed == result.ground_mask[d.valid_index]).mean() > 0.9999
+    assert d.structure_feet.sum() == result.stats['structure_feet'] > 0
 
 
 def test_theta_stays_inside_bounds_when_scenes_alternate(scans):

@@ -33,17 +33,19 @@ Ours, where the paper is silent:
 
   under a cap on objective evaluations.
 
-All segments are solved together as one padded (M, n, n) batch: a compiled (numba) Cholesky +
-triangular-inverse kernel (gp_compiled.py) with backend 'numba', numpy's stacked Cholesky and
-inverse with backend 'numpy' and as the fallback (non-PD matrices: jittered retries; a numba
-failure: numpy for the rest of that object's life); padded rows are identity rows with z = 0,
-which add nothing to J or its gradient.
+All segments are solved together as one padded (S, n, n) batch. Backend 'numba' runs the whole
+step compiled, each segment at its own size (gp_compiled.py: kernel, Cholesky, inverse, J, its
+gradient, prediction); backend 'numpy' is the reference: numpy's stacked Cholesky and inverse
+over the padded batch, where padded rows are identity rows with z = 0, which add nothing to J
+or its gradient. numpy is also the fallback (non-PD matrices: jittered retries; a numba
+failure: numpy for the rest of that object's life).
 """
 
 from __future__ import annotations
 
 import copy
 from dataclasses import dataclass
+from typing import Optional
 
 import numpy as np
 from scipy.optimize import minimize
@@ -106,7 +108,8 @@ class GPSolution:
     a_inv: np.ndarray  # (S, n, n)
     lml: float  # J(theta)
     jitter: float  # diagonal jitter that had to be added (m^2), 0 if none
-    kernel: np.ndarray  # (S, n, n) K at theta (padded slots 0)
+    kernel: Optional[np.ndarray]  # (S, n, n) K at theta (padded slots 0); None when compiled
+    gradient: Optional[np.ndarray] = None  # (3,) dJ/dlog(theta) when the solver gave it
 
 
 @dataclass(frozen=True)
@@ -169,17 +172,28 @@ class FrameGP:
         self.z = np.where(valid, take(z) - self.mean, 0.0)
         self.d = np.where(valid, take(d), 1.0)
         self.noise_var = np.where(valid, take(noise_var), 0.0)
-        self.num_points = int(valid.sum())
-        pair = valid[:, :, None] & valid[:, None, :]
-        di, dj = self.d[:, :, None], self.d[:, None, :]
-        sd = di * di + dj * dj
-        self.prefactor = np.where(pair, np.sqrt(2.0 * di * dj / sd), 0.0)
-        diff = self.r[:, :, None] - self.r[:, None, :]
-        self.q = np.where(pair, diff * diff / sd, 0.0)  # (r_i - r_j)^2 / (d_i^2 + d_j^2)
+        self.counts = valid.sum(axis=1)  # (S,) training points of each row: its first slots
+        self.num_points = int(self.counts.sum())
+        self._geometry = None  # (q, prefactor) (S, n, n) of the numpy path, made on first use
         self.backend = resolve_backend(backend)
         self.compiled_error = None  # why the numba kernel failed, if it did (then numpy)
         self.cholesky_fallbacks = 0  # jittered retries of this object and those it came from
+        self.factorisations = 0  # uncached solves of this object (the unit of fitting cost)
         self._cache = None
+
+    def _pair_geometry(self):
+        """(q, prefactor) (S, n, n) of the numpy path, 0 on padded pairs; computed once.
+
+        q = (r_i - r_j)^2 / (d_i^2 + d_j^2), prefactor = sqrt(2 d_i d_j / (d_i^2 + d_j^2)).
+        """
+        if self._geometry is None:
+            pair = self.valid[:, :, None] & self.valid[:, None, :]
+            di, dj = self.d[:, :, None], self.d[:, None, :]
+            sd = di * di + dj * dj
+            diff = self.r[:, :, None] - self.r[:, None, :]
+            self._geometry = (np.where(pair, diff * diff / sd, 0.0),
+                              np.where(pair, np.sqrt(2.0 * di * dj / sd), 0.0))
+        return self._geometry
 
     def with_noise(self, noise_var) -> 'FrameGP':
         """The same data with another per-candidate noise variance (M, N) (m^2).
@@ -187,12 +201,15 @@ class FrameGP:
         Shares the geometry (kernel distances, prefactors) with this object; the anchor keeps
         its own noise. Cheap: no re-padding, no new distance matrices.
         """
+        if self.backend == 'numpy':
+            self._pair_geometry()  # made once here, shared by the copy
         other = copy.copy(self)
         slots = np.take_along_axis(np.asarray(noise_var, dtype=np.float64)[self.segments],
                                    np.maximum(self.bins, 0), axis=1)
         anchor_var = self.anchor.noise_var if self.anchor is not None else 0.0
         other.noise_var = np.where(self.valid, np.where(self.is_anchor, anchor_var, slots), 0.0)
         other._cache = None  # cholesky_fallbacks carries on: it counts the whole chain
+        other.factorisations = 0
         return other
 
     def to_grid(self, slot_values, fill) -> np.ndarray:
@@ -206,11 +223,12 @@ class FrameGP:
 
     # -- core linear algebra ---------------------------------------------------------------
     def kernel(self, theta):
-        """K (S, n, n) at theta, zero on padded slots."""
+        """K (S, n, n) at theta, zero on padded slots (numpy reference)."""
         sigma_f, gain, _ = theta
-        k = np.multiply(self.q, -1.0 / (gain * gain))  # in place from here: one temporary
+        q, prefactor = self._pair_geometry()
+        k = np.multiply(q, -1.0 / (gain * gain))  # in place from here: one temporary
         np.exp(k, out=k)
-        k *= self.prefactor
+        k *= prefactor
         k *= sigma_f * sigma_f
         return k
 
@@ -224,30 +242,40 @@ class FrameGP:
         key = theta.tobytes()
         if self._cache is not None and self._cache[0] == key:
             return self._cache[1]  # L-BFGS-B re-evaluates its start and end points
+        self.factorisations += 1
+        sol = self._solve_compiled(theta) if self.backend == 'numba' else None
+        if sol is None:
+            sol = self._solve_numpy(theta)
+        self._cache = (key, sol)
+        return sol
+
+    def _lml(self, logdet, alpha):
+        return -0.5 * (float(np.einsum('si,si->', self.z, alpha)) + logdet
+                       + self.num_points * LOG_2PI)
+
+    def _solve_compiled(self, theta) -> Optional[GPSolution]:
+        """The whole step in numba; None when a matrix is not PD or numba fails (then numpy)."""
+        try:
+            ok, logdets, alpha, a_inv, gradient = gp_compiled.solve_batched(
+                self.r, self.d, self.z, self.noise_var, self.counts, *(float(t) for t in theta))
+        except Exception as exc:  # noqa: BLE001 - numba compile/runtime failure
+            self.backend, self.compiled_error = 'numpy', str(exc)  # numpy from now on
+            return None
+        if not ok.all():
+            return None
+        logdet = float(logdets.sum())
+        return GPSolution(theta, alpha, a_inv, self._lml(logdet, alpha), 0.0, None, gradient)
+
+    def _solve_numpy(self, theta) -> GPSolution:
+        """The numpy reference (and fallback): stacked factorisation of the padded batch."""
         k = self.kernel(theta)
         # A = K + noise on the diagonal; padded slots get 1 there (identity rows, K is 0 there)
         diagonal = np.where(self.valid, theta[2] ** 2 + self.noise_var, 1.0)
         a = k.copy()
         a_diag = a.reshape(a.shape[0], -1)[:, ::a.shape[-1] + 1]  # a view of every diagonal
         a_diag += diagonal
-        factorised = None
-        if self.backend == 'numba':
-            a_inv = a.copy()  # the kernel inverts in place; `a` stays intact for the fallback
-            try:
-                ok, logdets, alpha = gp_compiled.spd_inverse_batched(a_inv, self.z)
-            except Exception as exc:  # noqa: BLE001 - numba compile/runtime failure
-                self.backend, self.compiled_error = 'numpy', str(exc)  # numpy from now on
-            else:
-                if ok.all():
-                    factorised = a_inv, float(logdets.sum()), alpha, 0.0
-        if factorised is None:
-            factorised = self._numpy_factorise(a, a_diag, theta)
-        a_inv, logdet, alpha, jitter = factorised
-        lml = -0.5 * (float(np.einsum('si,si->', self.z, alpha)) + logdet
-                      + self.num_points * LOG_2PI)
-        sol = GPSolution(theta, alpha, a_inv, lml, jitter, k)
-        self._cache = (key, sol)
-        return sol
+        a_inv, logdet, alpha, jitter = self._numpy_factorise(a, a_diag, theta)
+        return GPSolution(theta, alpha, a_inv, self._lml(logdet, alpha), jitter, k)
 
     def _numpy_factorise(self, a, a_diag, theta):
         """Stacked numpy Cholesky (for PD check and log|A|) and inverse, with jitter retries.
@@ -276,12 +304,15 @@ class FrameGP:
         """J and dJ/dlog(theta) (3,), the objective of the hyperparameter search."""
         theta = np.exp(np.asarray(log_theta, dtype=np.float64))
         sol = self.solve(theta)
+        if sol.gradient is not None:
+            return sol.lml, sol.gradient.copy()
         k = sol.kernel
+        q, _ = self._pair_geometry()
         # W = alpha alpha^T - A^-1; K (and so W*K) is zero on padded slots, and the noise
         # derivative only involves the valid diagonal, so no full-size mask is needed.
         wk = (sol.alpha[:, :, None] * sol.alpha[:, None, :] - sol.a_inv) * k
         grad_sigma_f = float(wk.sum())  # 1/2 tr(W * 2K)
-        grad_gain = float(np.vdot(wk, self.q)) / theta[1] ** 2  # 1/2 tr(W * K * 2q/a^2)
+        grad_gain = float(np.vdot(wk, q)) / theta[1] ** 2  # 1/2 tr(W * K * 2q/a^2)
         w_diag = sol.alpha * sol.alpha - np.diagonal(sol.a_inv, axis1=1, axis2=2)
         grad_sigma_n = float(w_diag[self.valid].sum()) * theta[2] ** 2  # 1/2 tr(W * 2 sn^2 I)
         return sol.lml, np.array([grad_sigma_f, grad_gain, grad_sigma_n])
@@ -345,6 +376,20 @@ class FrameGP:
         ``with_std=False`` skips the variance (the costlier half) and returns std = None.
         """
         sigma_f, gain, _ = sol.theta
+        if self.backend == 'numba' and sol.gradient is not None:  # a compiled solution
+            shape = np.broadcast_shapes(np.shape(r_star), np.shape(d_star),
+                                        (self.segments.size, 1))
+            # fresh writable copies: a read-only array is another numba signature to load
+            r_star, d_star = (np.broadcast_to(a, shape).astype(np.float64)
+                              for a in (r_star, d_star))
+            try:
+                mean, std = gp_compiled.predict_batched(
+                    self.r, self.d, self.counts, sol.alpha, sol.a_inv, r_star, d_star,
+                    float(sigma_f), float(gain), bool(with_std))
+            except Exception as exc:  # noqa: BLE001 - numba compile/runtime failure
+                self.backend, self.compiled_error = 'numpy', str(exc)
+            else:
+                return mean + self.mean, (std if with_std else None)
         l_star = gain * np.asarray(d_star, dtype=np.float64)[:, :, None]
         l_train = gain * self.d[:, None, :]
         k_star = paciorek_kernel(np.asarray(r_star, dtype=np.float64)[:, :, None], l_star,

@@ -1,15 +1,23 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Compiled batched SPD factorisation for the GP (numba), with the numpy path as the reference.
+"""The whole GP step compiled (numba): kernel, Cholesky, inverse, LML, gradient, prediction.
 
-The GP solves one small SPD system per angular segment (n <= N + 1 = 25 by default) several
-times a frame, and ``np.linalg.inv`` costs ~2 ms for 120 such matrices because it runs a general
-LU per matrix. This kernel does Cholesky, the triangular inverse and L^-T L^-1 in one pass per
-matrix: ~0.75 ms for the same batch (benchmarks/RESULTS.md). It is used when numba imports;
-``gp.FrameGP.solve`` falls back to numpy (and to its jitter retries) when it does not, or when a
-matrix is not positive definite.
+The GP solves one small SPD system per angular segment several times a frame. The numpy
+reference (``gp.FrameGP`` with backend 'numpy') pads every segment to the largest one
+(n <= N + 1 = 25 by default) and runs stacked LAPACK calls and (S, n, n) temporaries; on a
+16-beam scan most segments hold a handful of training points, so nearly all of that work is
+padding. Here each segment is processed at its own size n_s, in one pass that builds K from
+(r, d), factorises A = K + diag(noise), inverts it and accumulates log|A|, alpha = A^-1 z and
+the three gradient terms, without a Python-level temporary. The functions release the GIL
+(``nogil``) so that a ROS executor thread keeps running while a frame is solved.
 
-The first call of a process compiles the kernel (about 1 s) or loads it from numba's on-disk
-cache (about 0.3 s when the package directory is writable).
+The outputs equal the numpy reference to round-off (test/test_gp.py): padded slots hold what
+numpy's identity rows give (A^-1 = I there, alpha = 0, K = 0).
+
+First call of a process: numba compiles these functions (about 1-3 s) or loads them from its
+on-disk cache (``cache=True``: ``__pycache__`` next to this file when that is writable, else
+numba's user cache directory; ``NUMBA_CACHE_DIR`` overrides both). The cache is filled by the
+first process that calls them, e.g. ``GroundSegmenter().warm_up()`` (the node does that at
+start) or the first ``segment()``.
 """
 
 from __future__ import annotations
@@ -24,70 +32,146 @@ except ImportError:  # pragma: no cover - exercised by the fallback tests via AV
 AVAILABLE = numba is not None
 
 
-def _spd_inverse_batched(a, z):
-    """For every s: A_s -> A_s^-1 in place; returns (ok (S,), logdet (S,), alpha = A^-1 z (S, n)).
+def _solve_batched(r, d, z, noise_var, counts, sigma_f, gain, sigma_n):
+    """Factorise A_s = K_s + diag(sigma_n^2 + noise_var) of every segment s at theta.
 
-    ``ok[s]`` is False when Cholesky meets a non-positive pivot; that matrix is left unchanged
-    and the caller falls back to jittered numpy.
+    r, d, z, noise_var: (S, n) padded training data, the first ``counts[s]`` slots of row s
+    valid. Returns (ok (S,), logdet (S,), alpha (S, n), a_inv (S, n, n), gradient (3,)) where
+    ``gradient`` is dJ/dlog(sigma_f, a, sigma_n) summed over the segments:
+    1/2 tr((alpha alpha^T - A^-1) dA/dlog theta). K is not kept. ``ok[s]`` is False
+    when Cholesky meets a non-positive pivot; then that segment's outputs are meaningless and
+    the caller falls back to jittered numpy.
     """
-    s_count, n, _ = a.shape
+    s_count, n = r.shape
     logdet = np.zeros(s_count)
     alpha = np.zeros((s_count, n))
+    a_inv = np.zeros((s_count, n, n))
     ok = np.ones(s_count, dtype=np.bool_)
+    k = np.zeros((n, n))  # K and q of the current segment: scratch, not kept
+    q = np.zeros((n, n))
     lower = np.zeros((n, n))
     inv_lower = np.zeros((n, n))
+    sf2 = sigma_f * sigma_f
+    inv_gain2 = 1.0 / (gain * gain)
+    sn2 = sigma_n * sigma_n
+    g_sf = 0.0
+    g_gain = 0.0
+    g_sn = 0.0
     for s in range(s_count):
-        m = a[s]
-        for j in range(n):  # Cholesky, lower
-            d = m[j, j]
-            for k in range(j):
-                d -= lower[j, k] * lower[j, k]
-            if not d > 0.0:
+        m = counts[s]
+        ainv = a_inv[s]
+        for i in range(m, n):
+            ainv[i, i] = 1.0  # padded slots: identity rows, as in the numpy reference
+        for i in range(m):  # K and q = (r_i - r_j)^2 / (d_i^2 + d_j^2), symmetric
+            di = d[s, i]
+            for j in range(i + 1):
+                dj = d[s, j]
+                sd = di * di + dj * dj
+                diff = r[s, i] - r[s, j]
+                qij = diff * diff / sd
+                kij = sf2 * np.sqrt(2.0 * di * dj / sd) * np.exp(-qij * inv_gain2)
+                q[i, j] = qij
+                q[j, i] = qij
+                k[i, j] = kij
+                k[j, i] = kij
+        for j in range(m):  # Cholesky of A = K + diag(noise), lower
+            v = k[j, j] + sn2 + noise_var[s, j]
+            for t in range(j):
+                v -= lower[j, t] * lower[j, t]
+            if not v > 0.0:
                 ok[s] = False
                 break
-            ljj = np.sqrt(d)
+            ljj = np.sqrt(v)
             lower[j, j] = ljj
             logdet[s] += 2.0 * np.log(ljj)
-            for i in range(j + 1, n):
-                v = m[i, j]
-                for k in range(j):
-                    v -= lower[i, k] * lower[j, k]
+            for i in range(j + 1, m):
+                v = k[i, j]
+                for t in range(j):
+                    v -= lower[i, t] * lower[j, t]
                 lower[i, j] = v / ljj
         if not ok[s]:
             continue
-        for i in range(n):  # L^-1, lower
+        for i in range(m):  # L^-1, lower
             inv_lower[i, i] = 1.0 / lower[i, i]
             for j in range(i):
                 v = 0.0
-                for k in range(j, i):
-                    v -= lower[i, k] * inv_lower[k, j]
+                for t in range(j, i):
+                    v -= lower[i, t] * inv_lower[t, j]
                 inv_lower[i, j] = v / lower[i, i]
-            for j in range(i + 1, n):
-                inv_lower[i, j] = 0.0
-        for i in range(n):  # A^-1 = L^-T L^-1
+        for i in range(m):  # A^-1 = L^-T L^-1
             for j in range(i + 1):
                 v = 0.0
-                for k in range(i, n):
-                    v += inv_lower[k, i] * inv_lower[k, j]
-                m[i, j] = v
-                m[j, i] = v
-        for i in range(n):
+                for t in range(i, m):
+                    v += inv_lower[t, i] * inv_lower[t, j]
+                ainv[i, j] = v
+                ainv[j, i] = v
+        for i in range(m):
             v = 0.0
-            for j in range(n):
-                v += m[i, j] * z[s, j]
+            for j in range(m):
+                v += ainv[i, j] * z[s, j]
             alpha[s, i] = v
-    return ok, logdet, alpha
+        for i in range(m):  # 1/2 tr(W dA), W = alpha alpha^T - A^-1
+            ai = alpha[s, i]
+            for j in range(m):
+                wk = (ai * alpha[s, j] - ainv[i, j]) * k[i, j]
+                g_sf += wk
+                g_gain += wk * q[i, j]
+            g_sn += ai * ai - ainv[i, i]
+    gradient = np.array([g_sf, g_gain * inv_gain2, g_sn * sn2])
+    return ok, logdet, alpha, a_inv, gradient
 
 
-spd_inverse_batched = (numba.njit(cache=True)(_spd_inverse_batched) if AVAILABLE
-                       else _spd_inverse_batched)
+def _predict_batched(r, d, counts, alpha, a_inv, r_star, d_star, sigma_f, gain, with_std):
+    """Posterior mean (minus the prior mean) and std at r_star, d_star (S, k) of every segment.
+
+    std is all zeros when ``with_std`` is False.
+    """
+    s_count, k_count = r_star.shape
+    mean = np.zeros((s_count, k_count))
+    std = np.zeros((s_count, k_count))
+    k_star = np.zeros(r.shape[1])
+    sf2 = sigma_f * sigma_f
+    for s in range(s_count):
+        m = counts[s]
+        for c in range(k_count):
+            l1 = gain * d_star[s, c]
+            v = 0.0
+            for j in range(m):
+                l2 = gain * d[s, j]
+                sl = l1 * l1 + l2 * l2
+                diff = r_star[s, c] - r[s, j]
+                kj = sf2 * np.sqrt(2.0 * l1 * l2 / sl) * np.exp(-diff * diff / sl)
+                k_star[j] = kj
+                v += kj * alpha[s, j]
+            mean[s, c] = v
+            if with_std:
+                reduce = 0.0
+                for i in range(m):
+                    w = 0.0
+                    for j in range(m):
+                        w += a_inv[s, i, j] * k_star[j]
+                    reduce += k_star[i] * w
+                std[s, c] = np.sqrt(max(sf2 - reduce, 0.0))  # clamp round-off negatives
+    return mean, std
+
+
+if AVAILABLE:
+    solve_batched = numba.njit(cache=True, nogil=True)(_solve_batched)
+    predict_batched = numba.njit(cache=True, nogil=True)(_predict_batched)
+else:  # pragma: no cover - the numpy backend is used instead; these are never called
+    solve_batched, predict_batched = _solve_batched, _predict_batched
 
 
 def warm_up() -> None:
-    """Compile (or load from numba's cache) the kernel now instead of inside the first frame.
+    """Compile (or load from numba's cache) the kernels now instead of inside the first frame.
 
     The node's worker thread calls this before it waits for clouds, so the first frame does not
-    pay the 0.2-1 s and drop the frames that arrive meanwhile. A no-op without numba.
+    pay the compilation and drop the frames that arrive meanwhile. A no-op without numba.
     """
     if AVAILABLE:
-        spd_inverse_batched(np.eye(2)[None].copy(), np.zeros((1, 2)))
+        one = np.ones((1, 2))
+        counts = np.array([2], dtype=np.intp)
+        _, _, alpha, a_inv, _ = solve_batched(np.array([[0.0, 1.0]]), one, one, one * 0.0,
+                                              counts, 1.0, 1.0, 0.1)
+        predict_batched(np.array([[0.0, 1.0]]), one, counts, alpha, a_inv, one, one, 1.0, 1.0,
+                        True)

@@ -4,8 +4,16 @@
 Paper section II. Every segment m is cut into N bins spread evenly between *that segment's own*
 minimum and maximum radial range ("divided unevenly" across segments: a segment facing a wall
 at 6 m gets fine bins, one facing an open road gets coarse ones). The ground candidate of a bin
-is its lowest point, kept as (r, z). Everything is vectorised with ``np.minimum.at`` /
-``np.bincount`` over integer bin keys: there is no Python loop over points or bins.
+is its lowest point, kept as (r, z); among points of equal z the first in input order.
+
+Binning decisions (segment, bin, lowest point) are made in float64 whatever the input precision,
+so a float32 cloud and the same values as float64 give the same grid, candidates and GP: with
+float32 arithmetic, points within round-off of a segment's border change segment, which moves
+that segment's r_min and every bin edge of it, and the cold-start theta follows (measured on
+the VLP-16 scan: 19 points, 14 candidates). Per-point outputs (r, position in the bin) are kept
+in the input's precision. Two implementations give the same grid: a compiled (numba) pass over
+the points, and the numpy reference (``np.minimum.at`` / ``np.bincount`` over integer bin
+keys), used without numba.
 
 Density-like value rho~ (paper eq. 3): each bin is cut into j vertical slices from its z_min to
 its z_max, rho_i = (points in slice i) / (slice area) and rho~ = mean_i rho_i. All slices of a
@@ -29,6 +37,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
+try:  # numba is a regular dependency, but the package must still work without it
+    import numba
+except ImportError:  # pragma: no cover - the numpy reference is used instead
+    numba = None
 
 
 @dataclass
@@ -65,44 +78,40 @@ class RadialGrid:
 
 
 def segment_of(x: np.ndarray, y: np.ndarray, num_segments: int) -> np.ndarray:
-    """Angular segment index in [0, M) of each point; segment 0 starts at azimuth -pi."""
-    theta = np.arctan2(y, x)
-    scale = np.asarray(num_segments / (2.0 * np.pi), dtype=theta.dtype)  # keep float32 float32
-    seg = ((theta + np.asarray(np.pi, dtype=theta.dtype)) * scale).astype(np.int32)
+    """Angular segment index in [0, M) of each point (float64 maths); segment 0 starts at -pi."""
+    theta = np.arctan2(np.asarray(y, dtype=np.float64), np.asarray(x, dtype=np.float64))
+    seg = ((theta + np.pi) * (num_segments / (2.0 * np.pi))).astype(np.int32)
     # arctan2 can return exactly +pi, which would land in segment M: clip, never wrap silently.
     return np.minimum(seg, num_segments - 1, out=seg)
 
 
-def build_grid(x: np.ndarray, y: np.ndarray, z: np.ndarray, num_segments: int,
-               num_bins: int) -> RadialGrid:
-    """Bin valid points (P,) x, y, z into the radial grid and pick the lowest point of every bin.
-
-    The coordinates must be finite (only valid points), float32 or float64. Per segment the
-    bins span [r_min, r_max] of that segment's points; a segment whose points all share one r
-    gets bins 1 mm wide.
-    """
-    m_count, n_count = int(num_segments), int(num_bins)
-    r = np.sqrt(x * x + y * y)
-    if not np.isfinite(r).all():
-        # x*x overflows for finite coordinates beyond ~1.8e19 m (float32) / 1.3e154 m (float64):
-        # hypot does not square; float64 keeps float32 input finite
-        r = np.hypot(x.astype(np.float64), y.astype(np.float64))
-    seg = segment_of(x, y, m_count)
-
-    # ufunc.at only takes its fast path when the accumulator has the data's dtype
-    r_min = np.full(m_count, np.inf, dtype=r.dtype)
-    r_max = np.full(m_count, -np.inf, dtype=r.dtype)
-    np.minimum.at(r_min, seg, r)
-    np.maximum.at(r_max, seg, r)
-    r_min, r_max = r_min.astype(np.float64), r_max.astype(np.float64)
+def _segment_widths(r_min, r_max, n_count):
+    """(r_min, bin width, 1 / width) per segment; empty segments (r_min = inf) get r_min 0."""
     empty_segment = ~np.isfinite(r_min)
     r_min[empty_segment] = 0.0
     r_max[empty_segment] = 0.0
     width = np.maximum((r_max - r_min) / n_count, 1e-3)
+    return r_min, width, 1.0 / width
 
-    # per-point arithmetic in the input's precision (float32 from drivers: half the traffic)
-    inv_width = (1.0 / width).astype(r.dtype)
-    position = (r - r_min.astype(r.dtype)[seg]) * inv_width[seg]
+
+def _range_and_segment(x, y, m_count):
+    """float64 r = sqrt(x^2 + y^2) and segment index of every point (vectorised numpy)."""
+    x64, y64 = x.astype(np.float64, copy=False), y.astype(np.float64, copy=False)
+    r = np.sqrt(x64 * x64 + y64 * y64)
+    if not np.isfinite(r).all():
+        # x*x overflows for finite coordinates beyond ~1.3e154 m: hypot does not square
+        r = np.hypot(x64, y64)
+    return r, segment_of(x64, y64, m_count)
+
+
+def _bin_points_numpy(r, seg, z, m_count, n_count):
+    """The numpy reference of :func:`_bin_points_compiled` (same outputs, same float64 maths)."""
+    r_min = np.full(m_count, np.inf)
+    r_max = np.full(m_count, -np.inf)
+    np.minimum.at(r_min, seg, r)
+    np.maximum.at(r_max, seg, r)
+    r_min, width, inv_width = _segment_widths(r_min, r_max, n_count)
+    position = (r - r_min[seg]) * inv_width[seg]
     bins = position.astype(np.int32)  # position >= 0: truncation is floor
     fraction = position  # in place from here: one array less at millions of points
     fraction -= bins
@@ -111,21 +120,83 @@ def build_grid(x: np.ndarray, y: np.ndarray, z: np.ndarray, num_segments: int,
     bins[last] = n_count - 1
     fraction[last] = 1.0
     key = seg * np.int32(n_count) + bins
-
     size = m_count * n_count
     count = np.bincount(key, minlength=size)
     z_min = np.full(size, np.inf, dtype=z.dtype)
     np.minimum.at(z_min, key, z)
-
-    candidate_index = np.full(size, -1, dtype=np.intp)
     lowest = np.flatnonzero(z == z_min[key])
-    candidate_index[key[lowest]] = lowest  # ties: any lowest point is a valid candidate
+    candidate_index = np.full(size, z.size, dtype=np.intp)
+    np.minimum.at(candidate_index, key[lowest], lowest)  # ties: the first in input order
+    candidate_index[candidate_index == z.size] = -1
+    return bins, fraction, r_min, width, count, candidate_index
 
+
+def _bin_points_compiled(r, seg, z, m_count, n_count):
+    """Segment ranges, then bins, counts and lowest points: two passes over the points."""
+    p_count = r.size
+    r_min = np.full(m_count, np.inf)
+    r_max = np.full(m_count, -np.inf)
+    for i in range(p_count):
+        s = seg[i]
+        r_min[s] = min(r_min[s], r[i])
+        r_max[s] = max(r_max[s], r[i])
+    r_min, width, inv_width = _segment_widths_compiled(r_min, r_max, n_count)
+    bins = np.empty(p_count, dtype=np.int32)
+    fraction = np.empty(p_count)
+    count = np.zeros(m_count * n_count, dtype=np.intp)
+    candidate_index = np.full(m_count * n_count, -1, dtype=np.intp)
+    for i in range(p_count):
+        s = seg[i]
+        position = (r[i] - r_min[s]) * inv_width[s]
+        b = int(position)
+        f = min(position - b, 1.0)
+        if b >= n_count:
+            b = n_count - 1
+            f = 1.0
+        bins[i] = b
+        fraction[i] = f
+        key = s * n_count + b
+        count[key] += 1
+        c = candidate_index[key]
+        if c < 0 or z[i] < z[c]:  # strict: among equal z the first point stays
+            candidate_index[key] = i
+    return bins, fraction, r_min, width, count, candidate_index
+
+
+if numba is not None:
+    _segment_widths_compiled = numba.njit(cache=True, nogil=True)(_segment_widths)
+    _bin_points_compiled = numba.njit(cache=True, nogil=True)(_bin_points_compiled)
+
+
+def build_grid(x: np.ndarray, y: np.ndarray, z: np.ndarray, num_segments: int,
+               num_bins: int, compiled: bool = True) -> RadialGrid:
+    """Bin valid points (P,) x, y, z into the radial grid and pick the lowest point of every bin.
+
+    The coordinates must be finite (only valid points), float32 or float64 arrays of one dtype.
+    Per segment the bins span [r_min, r_max] of that segment's points; a segment whose points
+    all share one r gets bins 1 mm wide. ``compiled``: the numba pass when numba imports (the
+    numpy reference otherwise, or if the compiled pass fails).
+    """
+    m_count, n_count = int(num_segments), int(num_bins)
+    r64, seg = _range_and_segment(x, y, m_count)
+    binned = None
+    if compiled and numba is not None:
+        try:
+            binned = _bin_points_compiled(r64, seg, z, m_count, n_count)
+        except Exception:  # noqa: BLE001 - numba compile/runtime failure: the reference
+            binned = None
+    if binned is None:
+        binned = _bin_points_numpy(r64, seg, z, m_count, n_count)
+    bins, fraction, r_min, width, count, candidate_index = binned
+
+    size = m_count * n_count
     occupied = candidate_index >= 0
     cand_r = np.full(size, np.nan)
     cand_z = np.full(size, np.nan)
-    cand_r[occupied] = r[candidate_index[occupied]]
+    cand_r[occupied] = r64[candidate_index[occupied]]
     cand_z[occupied] = z[candidate_index[occupied]]
+    # per-point outputs in the input's precision (float32 from drivers: half the traffic later)
+    r, fraction = r64.astype(x.dtype, copy=False), fraction.astype(x.dtype, copy=False)
 
     # rho~ = n / A: see the module docstring for the dropped 1/j.
     k = np.arange(n_count)

@@ -14,6 +14,8 @@ import dataclasses
 import math
 from dataclasses import dataclass, field
 
+from .sensor_frame import SensorPose
+
 
 TYPE_NAMES = {'float': 'a double (write it with a decimal point, e.g. 80.0)',
               'int': 'an integer (no decimal point)', 'bool': 'a bool (true/false)'}
@@ -171,7 +173,7 @@ class SegmenterParams:
 
     # --- labelling (segmenter.py) -------------------------------------------------------------
     ground_threshold_m: float = _param(
-        0.175, 'a point is ground when z - z_hat(r) <= this (m) + std_factor * predictive std',
+        0.2, 'a point is ground when z - z_hat(r) <= this (m) + std_factor * predictive std',
         0.0, 10.0)
     ground_threshold_std_factor: float = _param(
         0.0, 'multiplier of the GP predictive std added to ground_threshold_m', 0.0, 100.0)
@@ -185,7 +187,52 @@ class SegmenterParams:
         '(use_cross_slope_threshold); a steeper rise between neighbouring segments is '
         'structure and widens it no more than this slope would', 0.0, 10.0)
     max_threshold_m: float = _param(
-        0.3, 'cap (m) on the total ground threshold, however large the predictive std', 0.0, 100.0)
+        0.3, 'cap (m) on the total ground threshold, however large the predictive std; must be '
+        'at least ground_threshold_m', 0.0, 100.0)
+
+    # --- feet of vertical structures (structure.py) ------------------------------------------
+    use_vertical_structure_test: bool = _param(
+        True, 'relabel as obstacle a ground point with another point within a few cm '
+        'horizontally (its polar cell or the 8 around it) that stands between structure_rise_m '
+        'and structure_max_height_m above the predicted ground: the lowest returns of walls, '
+        'fences, cars, trunks and bushes')
+    structure_cell_m: float = _param(
+        0.03, 'radial size (m) of the cells of the structure test near the sensor; beyond the '
+        'range where an azimuth cell is this wide, cells grow in proportion to the range',
+        0.005, 1.0)
+    structure_cell_deg: float = _param(
+        0.25, 'azimuth size (degrees) of the cells of the structure test', 0.01, 10.0)
+    structure_rise_m: float = _param(
+        0.2, 'a point more than this (m) above the predicted ground is part of a column: it '
+        'makes the ground points of its neighbourhood structure feet; keep it above curb '
+        'height', 0.0, 10.0)
+    structure_step_m: float = _param(
+        0.05, 'a column point must also stand more than this (m) above the ground point it '
+        'condemns (neighbours on a ramp differ by less over a few cm)', 0.0, 10.0)
+    structure_max_height_m: float = _param(
+        0.7, 'points higher than this (m) above the predicted ground are not columns (tree '
+        'crowns, car bodies and signs overhanging visible ground); above structure_rise_m',
+        0.0, 100.0)
+
+    # --- sensor pose in the cloud's frame (sensor_frame.py) ------------------------------------
+    sensor_x_m: float = _param(
+        0.0, 'x of the sensor in the cloud\'s frame (m): the radial grid is centred on the sensor '
+        '(e.g. its mounting offset when clouds come in base_link)', -1e4, 1e4)
+    sensor_y_m: float = _param(0.0, 'y of the sensor in the cloud\'s frame (m)', -1e4, 1e4)
+    sensor_z_m: float = _param(0.0, 'z of the sensor in the cloud\'s frame (m)', -1e4, 1e4)
+    sensor_roll_rad: float = _param(
+        0.0, 'roll of the cloud\'s frame against level ground (rad, about x, REP 103); the '
+        'cloud is levelled with it, e.g. for a tilted mount publishing in its own frame',
+        -math.pi, math.pi)
+    sensor_pitch_rad: float = _param(
+        0.0, 'pitch of the cloud\'s frame against level ground (rad, about y after roll; '
+        'positive = x axis pointing down)', -math.pi / 2, math.pi / 2)
+
+    @property
+    def sensor_pose(self) -> SensorPose:
+        """Where the sensor is in the cloud's frame and how that frame is tilted."""
+        return SensorPose(self.sensor_x_m, self.sensor_y_m, self.sensor_z_m,
+                          self.sensor_roll_rad, self.sensor_pitch_rad)
 
     def validate(self) -> 'SegmenterParams':
         """Check every range and cross-field rule; raise ValueError naming the field."""
@@ -199,6 +246,17 @@ class SegmenterParams:
             raise ValueError('slope_floor: must be below slope_ceiling')
         if self.min_length_factor >= self.max_length_factor:
             raise ValueError('min_length_factor: must be below max_length_factor')
+        if self.ground_threshold_m > self.max_threshold_m:
+            # max_threshold_m caps the total threshold: a larger ground_threshold_m would be cut
+            # back to it silently (ros2 param set changes one parameter at a time)
+            raise ValueError(f'ground_threshold_m: {self.ground_threshold_m!r} is above '
+                             f'max_threshold_m {self.max_threshold_m!r}, the cap on the total '
+                             'threshold; to raise the threshold, raise max_threshold_m first; '
+                             'to lower the cap, lower ground_threshold_m first')
+        if self.structure_rise_m >= self.structure_max_height_m:
+            raise ValueError(f'structure_rise_m: {self.structure_rise_m!r} must be below '
+                             f'structure_max_height_m {self.structure_max_height_m!r}; raise '
+                             'structure_max_height_m first')
         for init, low, high in (('sigma_f_init_m', 'sigma_f_min_m', 'sigma_f_max_m'),
                                 ('length_scale_gain_init', 'length_scale_gain_min',
                                  'length_scale_gain_max'),

@@ -26,6 +26,14 @@ marks the paper's steps, [ours] our additions (``additions.py``, each with a ``u
              edges of its segment; ground when z - z_hat <= threshold ([ours, off by
              default] widened by the ground's rise across the segment,
              ``use_cross_slope_threshold``).
+``structure`` (``use_vertical_structure_test``) ground points with a column of returns right
+             above them are the feet of walls, fences, cars, trunks and bushes: obstacle
+             (``structure.vertical_structure_mask``).
+
+The grid is centred at the origin and z is taken as up: a cloud not in the sensor's own frame
+is first moved into the levelled sensor frame with the ``sensor_*`` pose parameters
+(sensor_frame.py; no copy when they are all 0). Labels are per input point; ``ground_height``
+is in the input's frame; ``details`` (grid, lines, GP) are in the levelled frame.
 
 Choices where the paper is vague, each a parameter (see params.py):
 
@@ -67,6 +75,9 @@ from .gp import FrameGP, GPSolution, GroundAnchor, length_scale_factors, resolve
 from .grid import RadialGrid, build_grid, relative_density
 from .lines import LineSegments, extract_lines
 from .params import SegmenterParams
+from .sensor_frame import ground_height_in_cloud_frame, to_levelled_frame
+from .structure import vertical_structure_mask
+from .surface import GroundSurface, ground_offsets
 
 _OUTLIER_NOISE_VAR = 1e4  # m^2: a rejected candidate's noise variance (std 100 m)
 _blas = None  # threadpoolctl controller, made on first use (after scipy has loaded its BLAS)
@@ -114,6 +125,8 @@ class SegmentationDetails:
     gp: Optional[FrameGP] = None  # the frame's GP batch (rows = gp.segments), for analysis
     gp_solution: Optional[GPSolution] = None  # its final factorisation
     length_factor_at_edges: Optional[np.ndarray] = None  # (S, N + 1) d used at the bin edges
+    structure_feet: Optional[np.ndarray] = None  # (P,) bool: passed the height test, obstacle
+    # as the foot of a vertical structure (None when use_vertical_structure_test is off)
 
 
 @dataclass
@@ -127,6 +140,17 @@ class SegmentationResult:
     timings_ms: dict = field(default_factory=dict)  # stage -> milliseconds, plus 'total'
     stats: dict = field(default_factory=dict)  # counters: candidates, cholesky fallbacks, ...
     details: Optional[SegmentationDetails] = None
+    # The GP ground surface of the frame (surface.py); its extras are computed on first read.
+    ground_surface: Optional[GroundSurface] = None
+    # z of the points as given to segment() (a view, not a copy), for height_above_ground
+    point_z: Optional[np.ndarray] = field(default=None, repr=False)
+
+    @property
+    def height_above_ground(self) -> np.ndarray:
+        """float64 (N,): z - ground_height of every point (m); NaN for invalid points."""
+        if self.point_z is None:
+            raise ValueError('height_above_ground: the result carries no point z')
+        return self.point_z.astype(np.float64) - self.ground_height
 
     @property
     def obstacle_mask(self) -> np.ndarray:
@@ -158,16 +182,14 @@ class _GroundModel(NamedTuple):
     default_height: float  # ground height of segments without a training point (m)
 
 
-def _ground_at_bin_edges(model: _GroundModel, grid: RadialGrid, need_std: bool):
-    """GP posterior mean (and std) at the N + 1 bin edges of every segment (stage ``predict``).
+def _ground_at_bin_edges(model: _GroundModel, edges: np.ndarray, need_std: bool):
+    """GP posterior mean (and std) at the (M, N + 1) bin ``edges`` (stage ``predict``).
 
     Segments outside the GP batch keep ``model.default_height`` and the prior std sigma_f.
-    Returns (edges, mean, std, d at the edges of the GP's segments) with (M, N + 1) arrays.
+    Returns (mean, std, d at the edges of the GP's segments) with (M, N + 1) arrays.
     """
-    m_count, n_bins = grid.num_segments, grid.num_bins
-    edges = grid.bin_edges()
-    mean = np.full((m_count, n_bins + 1), model.default_height)
-    std = np.full((m_count, n_bins + 1), model.theta[0])
+    mean = np.full(edges.shape, model.default_height)
+    std = np.full(edges.shape, model.theta[0])
     d_star = None
     if model.solution is not None:
         rows = model.gp.segments
@@ -177,7 +199,33 @@ def _ground_at_bin_edges(model: _GroundModel, grid: RadialGrid, need_std: bool):
         mean[rows] = mean_b
         if need_std:
             std[rows] = std_b
-    return edges, mean, std, d_star
+    return mean, std, d_star
+
+
+def _ground_surface(model: _GroundModel, grid: RadialGrid, edges, mean, std, point_z, ground,
+                    ground_height, valid_index) -> GroundSurface:
+    """The frame's GroundSurface; ``std`` None: its z_std is computed when first read.
+
+    The deferred computations keep the model, the edges, the (N,) result arrays and the points'
+    grid cells alive, not the rest of the per-point grid.
+    """
+    point_segment, point_bin = grid.point_segment, grid.point_bin  # over the valid points
+    m_count, n_bins = grid.num_segments, grid.num_bins
+
+    def compute_std():
+        with _single_threaded_blas(), np.errstate(over='ignore'):
+            return _ground_at_bin_edges(model, edges, need_std=True)[1]
+
+    def compute_offset():
+        on_ground = ground[valid_index]
+        residual = (point_z[valid_index][on_ground].astype(np.float64)
+                    - ground_height[valid_index][on_ground])
+        return ground_offsets(residual, point_segment[on_ground], point_bin[on_ground], m_count,
+                              n_bins, model.theta[2])
+
+    return GroundSurface(grid.segment_r_min, grid.bin_width, grid.count.sum(axis=1) > 0, mean,
+                         model.training.any(axis=1), std,
+                         compute_std if std is None else None, compute_offset)
 
 
 def _interpolate_at_points(values: np.ndarray, grid: RadialGrid) -> np.ndarray:
@@ -241,7 +289,8 @@ class GroundSegmenter:
         return self._backend
 
     def warm_up(self) -> None:
-        """Compile (or load from numba's cache) the GP kernel now, not inside the first frame.
+        """Compile (or load from numba's cache) the GP step and the grid pass now, not inside
+        the first frame (see gp_compiled.py for where the cache lives).
 
         On failure this segmenter switches to numpy and the error is raised for the caller to
         report; segmenting still works.
@@ -252,6 +301,9 @@ class GroundSegmenter:
             except Exception:
                 self._backend = 'numpy'
                 raise
+            for dtype in (np.float32, np.float64):  # both input precisions of the grid pass
+                xyz = np.ones((3, 2), dtype=dtype)
+                build_grid(*xyz, 2, 2)
 
     @property
     def hyperparameters(self) -> Hyperparameters:
@@ -411,7 +463,15 @@ class GroundSegmenter:
         # overflow to inf is handled where it can happen (absurdly far points: the kernel between
         # them becomes 0); do not spray RuntimeWarnings into a node's log for it
         with _single_threaded_blas(), np.errstate(over='ignore'):
-            return self._segment(points, details)
+            pose = self._params.sensor_pose
+            if pose.is_identity:  # a cloud in the sensor frame: no copy
+                return self._segment(points, details)
+            # sensor_frame.py: segment in the levelled sensor frame, report heights in ours
+            levelled = to_levelled_frame(points, pose)
+            result = self._segment(levelled, details)
+            result.ground_height = ground_height_in_cloud_frame(levelled, result.ground_height,
+                                                                pose)
+            return result
 
     def _segment(self, points: np.ndarray, details: bool) -> SegmentationResult:
         p = self._params
@@ -421,7 +481,7 @@ class GroundSegmenter:
                  'outlier_candidates': 0, 'steep_line_candidates': 0, 'lines': 0,
                  'elevated_candidates': 0, 'cholesky_fallbacks': 0, 'optimizer_evaluations': 0,
                  'optimizer_iterations': 0, 'optimizer_failures': 0,
-                 'log_marginal_likelihood': float('nan')}
+                 'log_marginal_likelihood': float('nan'), 'structure_feet': 0}
         pts = np.asarray(points)
         if pts.ndim != 2 or pts.shape[1] < 3:
             raise ValueError(f'points must be an (N, >=3) array, got shape {pts.shape}')
@@ -441,13 +501,17 @@ class GroundSegmenter:
         height = np.full(n_points, np.nan)
         if n_valid == 0:
             timings['total'] = (time.perf_counter() - t_start) * 1e3
-            return SegmentationResult(ground, valid, height, self._theta, timings, stats)
+            return SegmentationResult(ground, valid, height, self._theta, timings, stats,
+                                      ground_surface=GroundSurface.empty(p.num_segments,
+                                                                         p.num_bins),
+                                      point_z=xyz[:, 2])
         xyz_v = xyz if all_valid else xyz[valid_index]
         x, y, z = (np.ascontiguousarray(xyz_v[:, i]) for i in range(3))
         del xyz_v
 
         t = time.perf_counter()
-        grid = build_grid(x, y, z, p.num_segments, p.num_bins)
+        grid = build_grid(x, y, z, p.num_segments, p.num_bins,
+                          compiled=self._backend == 'numba')
         timings['grid'] = (time.perf_counter() - t) * 1e3
 
         t = time.perf_counter()
@@ -468,7 +532,8 @@ class GroundSegmenter:
 
         t = time.perf_counter()
         need_std = details or p.ground_threshold_std_factor > 0
-        edges, mean_full, std_full, d_star = _ground_at_bin_edges(model, grid, need_std)
+        edges = grid.bin_edges()
+        mean_full, std_full, d_star = _ground_at_bin_edges(model, edges, need_std)
         timings['predict'] = (time.perf_counter() - t) * 1e3
 
         t = time.perf_counter()
@@ -478,9 +543,22 @@ class GroundSegmenter:
             threshold = _interpolate_at_points(edge_threshold, grid)
         else:
             threshold = edge_threshold
-        ground[valid_index] = z - z_hat <= threshold
-        height[valid_index] = z_hat
+        ground_v = z - z_hat <= threshold
         timings['label'] = (time.perf_counter() - t) * 1e3
+
+        feet = None
+        if p.use_vertical_structure_test:
+            t = time.perf_counter()
+            feet = vertical_structure_mask(
+                x, y, z, z_hat, ground_v, cell_m=p.structure_cell_m,
+                cell_deg=p.structure_cell_deg, rise_m=p.structure_rise_m,
+                max_height_m=p.structure_max_height_m, step_m=p.structure_step_m,
+                r=grid.point_r)
+            ground_v &= ~feet
+            stats['structure_feet'] = int(np.count_nonzero(feet))
+            timings['structure'] = (time.perf_counter() - t) * 1e3
+        ground[valid_index] = ground_v
+        height[valid_index] = z_hat
         timings['total'] = (time.perf_counter() - t_start) * 1e3
 
         extra = None
@@ -489,5 +567,8 @@ class GroundSegmenter:
             extra = SegmentationDetails(
                 np.flatnonzero(valid), grid, lines, model.training, model.outliers,
                 np.where(grid.has_candidate, theta[1] * model.length_factor, np.nan), edges,
-                mean_full, std_full, threshold, model.gp, model.solution, d_star)
-        return SegmentationResult(ground, valid, height, self._theta, timings, stats, extra)
+                mean_full, std_full, threshold, model.gp, model.solution, d_star, feet)
+        surface = _ground_surface(model, grid, edges, mean_full, std_full if need_std else None,
+                                  xyz[:, 2], ground, height, valid_index)
+        return SegmentationResult(ground, valid, height, self._theta, timings, stats, extra,
+                                  surface, xyz[:, 2])

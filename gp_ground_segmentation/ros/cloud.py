@@ -32,7 +32,7 @@ import copy
 import numpy as np
 
 __all__ = ['CloudFormatError', 'POINTFIELD_DTYPES', 'fields_dtype', 'read_cloud', 'cloud_xyz',
-           'point_rows', 'subset_cloud', 'make_cloud']
+           'xyz_dtype', 'point_rows', 'subset_cloud', 'make_cloud']
 
 
 class CloudFormatError(ValueError):
@@ -168,16 +168,17 @@ def read_cloud(msg):
                       else np.ascontiguousarray(rows).data)
 
 
-def cloud_xyz(points):
-    """``(N, 3)`` float64 x, y, z (native byte order) from a structured point array.
+def cloud_xyz(points, dtype=np.float64):
+    """``(N, 3)`` x, y, z (native byte order, ``dtype``) from a structured point array.
 
-    x, y, z may be any PointField numeric type. Raises CloudFormatError when one is missing or
-    has ``count != 1``.
+    x, y, z may be any PointField numeric type. ``dtype``: float64 (default), float32, or None
+    for the cloud's own precision (:func:`xyz_dtype`). The result is column-major, so each
+    coordinate is one contiguous array (the segmenter reads them without another copy).
+    Raises CloudFormatError when one is missing or has ``count != 1``.
     """
     names = points.dtype.names
     if names is None:
         raise CloudFormatError('cloud_xyz needs a structured point array (from read_cloud)')
-    out = np.empty((points.shape[0], 3), dtype=np.float64)
     missing = [c for c in ('x', 'y', 'z') if c not in names]
     if missing:
         raise CloudFormatError(f"cloud has no field {', '.join(missing)} (fields: {list(names)})")
@@ -185,12 +186,25 @@ def cloud_xyz(points):
         ft = points.dtype.fields[c][0]
         if ft.shape != ():
             raise CloudFormatError(f"field '{c}' has count {int(np.prod(ft.shape))}, expected 1")
+    out = np.empty((points.shape[0], 3), dtype=xyz_dtype(points) if dtype is None else dtype,
+                   order='F')
     # Signalling-NaN bit patterns (driver garbage) raise FE_INVALID when widened; they still
     # become NaN, which the segmenter treats as invalid, so the warning is only noise.
     with np.errstate(invalid='ignore'):
         for j, c in enumerate(('x', 'y', 'z')):
-            out[:, j] = points[c]  # casts and byte-swaps to native float64 in one pass
+            out[:, j] = points[c]  # casts and byte-swaps to native order in one pass
     return out
+
+
+def xyz_dtype(points) -> np.dtype:
+    """float32 when x, y and z are all FLOAT32 fields (every LiDAR driver), else float64.
+
+    float32 loses nothing for such a cloud, and the segmenter gives the same result for float32
+    input as for the same values in float64 (its grid decides in float64, grid.py).
+    """
+    fields = points.dtype.fields or {}
+    kinds = {fields[c][0].base.newbyteorder('=') for c in ('x', 'y', 'z') if c in fields}
+    return np.dtype(np.float32) if kinds == {np.dtype(np.float32)} else np.dtype(np.float64)
 
 
 def point_rows(msg):
@@ -345,3 +359,37 @@ def make_cloud(header, points, msg_type=None):
     else:
         msg.is_dense = False
     return msg
+
+
+def with_float32_field(msg, name, values):
+    """A copy of the unorganized cloud ``msg`` with a FLOAT32 field ``name`` appended per point.
+
+    The new field sits after every existing byte (offset = old point_step), in the cloud's byte
+    order; every original field keeps its offset and bytes. ``values``: (width,) numbers.
+    Raises CloudFormatError when the cloud already has a field of that name or is organized.
+    """
+    if any(f.name == name for f in msg.fields):
+        raise CloudFormatError(f"cloud already has a field named '{name}'")
+    if int(msg.height) > 1:
+        raise CloudFormatError(f'expected an unorganized cloud (height 1), got {msg.height}')
+    rows = point_rows(msg)
+    n, step = rows.shape
+    values = np.asarray(values)
+    if values.shape != (n,):
+        raise ValueError(f"field '{name}': {values.shape} values for {n} points")
+    packed = np.empty(n, dtype=np.dtype([('point', np.void, step),
+                                         ('value', '>f4' if msg.is_bigendian else '<f4')]))
+    packed['point'] = np.ascontiguousarray(rows).view(np.dtype((np.void, step))).reshape(n)
+    packed['value'] = values
+    out = type(msg)()
+    out.header = _copy_header(msg.header)
+    out.height = 1
+    out.width = n
+    out.fields = _copy_fields(msg.fields) + [
+        _field_class(type(msg))(name=name, offset=step, datatype=7, count=1)]
+    out.is_bigendian = bool(msg.is_bigendian)
+    out.point_step = step + 4
+    out.row_step = n * (step + 4)
+    out.data = _u8_array(packed.view(np.uint8))
+    out.is_dense = bool(msg.is_dense)
+    return out

@@ -21,12 +21,17 @@ from pathlib import Path
 
 from ..core.params import SegmenterParams, describe_params, value_problem
 
-__all__ = ['NODE_NAME', 'NODE_PARAMS', 'ParameterConfigError', 'all_param_specs',
-           'check_param_value', 'describe_node_params', 'is_ros_builtin', 'load_params_file',
-           'node_param_defaults', 'render_params_table', 'render_params_yaml', 'split_params',
+__all__ = ['NODE_NAME', 'NODE_PARAMS', 'PARAMS_FILE_KEY', 'ParameterConfigError',
+           'all_param_specs', 'check_param_value', 'describe_node_params', 'is_ros_builtin',
+           'load_params_file', 'node_param_defaults', 'render_param_overrides',
+           'render_params_table', 'render_params_yaml', 'split_params',
            'validate_node_params']
 
 NODE_NAME = 'ground_segmentation'
+# Key of the shipped params file: '/**' matches the node in any namespace and under any name
+# (-r __ns:=/seg, -r __node:=...); a plain 'ground_segmentation:' key only matches in the root
+# namespace, and rcl silently ignores a file that has no section for the node.
+PARAMS_FILE_KEY = '/**'
 
 # Node-only parameters (not part of the segmenter): name -> spec, same keys as describe_params().
 NODE_PARAMS = {
@@ -45,6 +50,17 @@ NODE_PARAMS = {
         'default': 50, 'type': 'int', 'min': 1, 'max': 100000, 'read_only': False,
         'description': 'number of most recent frames over which timings (mean/p95/max), '
                        'input rate and drops are reported (frames)'},
+    'publish_ground_surface': {
+        'default': True, 'type': 'bool', 'read_only': False,
+        'description': 'publish the GP ground surface on ground_surface: PointCloud2 x, y, z, '
+                       'z_std (FLOAT32, m) at the bin edges of every segment with ground '
+                       'candidates; z_std is the posterior std of the ground height itself '
+                       '(without sensor noise)'},
+    'add_height_above_ground_field': {
+        'default': False, 'type': 'bool', 'read_only': False,
+        'description': 'append a FLOAT32 height_above_ground field (z - predicted ground '
+                       'height, m) to the ground and obstacle clouds; off keeps them '
+                       'byte-for-byte copies of the input points'},
 }
 
 # Parameters every rclpy node has or may get from rclpy itself; a params file may set them.
@@ -193,9 +209,11 @@ def load_params_file(path, node_name: str = NODE_NAME, namespace: str = '/'):
         matched = True
         _flatten('', params, values, str(path))
     if doc and not matched:
+        ns = namespace.strip('/')
+        fqn = ('/' + ns if ns else '') + '/' + node_name
         raise ParameterConfigError(
-            f"{path}: no section for node '{node_name}' (use '{node_name}:' or '/**:' with "
-            f"'ros__parameters:' under it)")
+            f"{path}: no section for node '{fqn}' (its keys: {', '.join(map(str, doc))}); "
+            f"use '/**:' (any node, any namespace) or '{fqn}:' with 'ros__parameters:' under it")
     specs = all_param_specs()
     for name, value in values.items():
         if is_ros_builtin(name):
@@ -234,7 +252,7 @@ def _range_text(spec: dict) -> str:
            f'{_yaml_scalar(high) if high is not None else "inf"}]'
 
 
-def render_params_yaml(node_name: str = NODE_NAME) -> str:
+def render_params_yaml(section_key: str = PARAMS_FILE_KEY) -> str:
     """The text of config/params.yaml: every parameter with its default and a comment.
 
     ``python -c "from gp_ground_segmentation.ros.config import render_params_yaml as r;
@@ -247,11 +265,13 @@ def render_params_yaml(node_name: str = NODE_NAME) -> str:
         '# Use:  ros2 run gp_ground_segmentation ground_segmentation_node --ros-args \\',
         '#         -r points:=/velodyne_points --params-file config/params.yaml',
         '# Types are strict (as in rclpy): doubles need a decimal point (80.0, not 80).',
-        '# Optional QoS overrides of the outputs, e.g. best-effort ground cloud:',
+        "# The key '/**' matches the node in any namespace and under any node name.",
+        '# Optional QoS overrides of the outputs (keys are the resolved topic names, e.g.',
+        '# /seg/ground in namespace /seg), e.g. a best-effort ground cloud:',
         '#   qos_overrides:',
         '#     /ground:',
         '#       publisher: {reliability: best_effort, depth: 1}',
-        f'{node_name}:',
+        f"'{section_key}':",
         '  ros__parameters:',
     ]
     sections = [('segmenter (GroundSegmenter / SegmenterParams)', describe_params()),
@@ -263,6 +283,18 @@ def render_params_yaml(node_name: str = NODE_NAME) -> str:
             comment = f"{row['description']}; {row['type']}{_range_text(row)}{ro}"
             lines.extend('    # ' + part for part in textwrap.wrap(comment, 94))
             lines.append(f"    {row['name']}: {_yaml_scalar(row['default'])}")
+    return '\n'.join(lines) + '\n'
+
+
+def render_param_overrides(values: dict, header_lines=(), node_name: str = NODE_NAME) -> str:
+    """A parameter file with only ``values`` (checked like load_params_file), in the layout of
+    config/params.yaml, under a comment header (e.g. what a tuner tuned on)."""
+    specs = all_param_specs()
+    for name, value in values.items():
+        check_param_value(name, value, specs)
+    lines = ['# ' + part for text in header_lines for part in textwrap.wrap(text, 96)]
+    lines += [f'{node_name}:', '  ros__parameters:' + ('' if values else ' {}')]
+    lines += [f'    {name}: {_yaml_scalar(value)}' for name, value in values.items()]
     return '\n'.join(lines) + '\n'
 
 

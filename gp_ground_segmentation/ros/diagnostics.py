@@ -12,10 +12,12 @@ Level rules (first match wins):
   STALE  no cloud received yet;
   ERROR  the most recent frame failed: bad input (CloudFormatError, message given) or a processing
          error;
-  WARN   the most recent frame was processed but its input looks wrong (``record_frame``
+  WARN   a frame within the window was processed but its input looked wrong (``record_frame``
          warnings: empty, no valid point, trailing bytes, empty frame_id, stamp going backwards,
-         field layout changed), mean total time > budget, frames dropped within the window,
-         earlier failures within the window, or no input for ``stale_after_s``;
+         field layout changed, cloud not sensor-centred), mean total time > budget (the
+         cold-start first frame, which learns theta from scratch, is left out of this mean
+         once another frame exists), frames dropped within the window, earlier failures within
+         the window, or no input for ``stale_after_s``;
   OK     otherwise.
 ``ProcessingWindow`` is thread-safe: the subscription callback, the worker thread and the timer
 all update or read it.
@@ -79,16 +81,19 @@ class ProcessingWindow:
         old = old or {}
         self._timings = deque(old.get('timings', ()), maxlen=window)  # dict stage -> ms
         self._stats = deque(old.get('stats', ()), maxlen=window)  # result.stats per frame
-        # Fate of the last ``window`` frames: 'ok' | 'bad_input' | 'error' | 'dropped'.
+        # Fate of the last ``window`` frames: 'ok' | 'warning' (processed, input warnings) |
+        # 'bad_input' | 'error' | 'dropped'.
         self._outcomes = deque(old.get('outcomes', ()), maxlen=window)
         self._receive_times = deque(old.get('receive', ()), maxlen=window + 1)
+        # Per entry of _timings: True for the cold-start first frame (kept out of the budget).
+        self._cold = deque(old.get('cold', ()), maxlen=window)
 
     def resize(self, window: int) -> None:
         """Change the window length, keeping the most recent entries."""
         with self._lock:
             self._make_deques(window, {'timings': self._timings, 'stats': self._stats,
                                        'outcomes': self._outcomes,
-                                       'receive': self._receive_times})
+                                       'receive': self._receive_times, 'cold': self._cold})
 
     # --- updates ---------------------------------------------------------------------------
     def record_received(self, frame_id: str | None = None, now: float | None = None) -> None:
@@ -118,13 +123,14 @@ class ProcessingWindow:
         n = int(res.valid_mask.size)
         n_ground = int(np.count_nonzero(res.ground_mask))
         with self._lock:
+            self._cold.append(self.frames_processed == 0)
             self.frames_processed += 1
             self.last_outcome = 'ok'
             if frame_id is not None:
                 self.last_frame_id = frame_id
             self._timings.append(frame_timings(out))
             self._stats.append(dict(res.stats))
-            self._outcomes.append('ok')
+            self._outcomes.append('warning' if warnings else 'ok')
             self.last_points = {'points_in': n, 'points_ground': n_ground,
                                 'points_obstacles': n - n_ground - res.num_invalid,
                                 'points_invalid': res.num_invalid}
@@ -150,15 +156,16 @@ class ProcessingWindow:
         """A consistent copy of everything needed to build a status."""
         now = time.monotonic() if now is None else now
         with self._lock:
-            times = list(self._receive_times)
-            rate = ((len(times) - 1) / (times[-1] - times[0])
-                    if len(times) >= 2 and times[-1] > times[0] else float('nan'))
             outcomes = list(self._outcomes)
+            timings = list(self._timings)
+            warm = [t for t, cold in zip(timings, self._cold) if not cold]
             return {
-                'timings': list(self._timings), 'stats': list(self._stats),
+                'timings': timings, 'stats': list(self._stats),
+                'budget_timings': warm or timings,
+                'warnings_in_window': sum(1 for o in outcomes if o == 'warning'),
                 'failures_in_window': sum(1 for o in outcomes if o in ('bad_input', 'error')),
                 'drops_in_window': sum(1 for o in outcomes if o == 'dropped'),
-                'input_rate_hz': rate,
+                'input_rate_hz': _input_rate(list(self._receive_times), now),
                 'frames_received': self.frames_received,
                 'frames_processed': self.frames_processed,
                 'frames_dropped': self.frames_dropped, 'frames_failed': self.frames_failed,
@@ -172,6 +179,20 @@ class ProcessingWindow:
                                         if self.last_receive_time is not None else None),
                 'window': self.window,
             }
+
+
+def _input_rate(times: list, now: float) -> float:
+    """Frames per second over the last receptions ``times`` (s, ascending), NaN below two.
+
+    Measured up to ``now`` once the input has been silent for more than two mean periods, so
+    the rate falls towards 0 when the input stops instead of keeping its last value.
+    """
+    if len(times) < 2 or times[-1] <= times[0]:
+        return float('nan')
+    span = times[-1] - times[0]
+    if now - times[-1] > 2.0 * span / (len(times) - 1):
+        span = now - times[0]
+    return (len(times) - 1) / span
 
 
 def _timing_summary(timings: list) -> dict:
@@ -195,9 +216,9 @@ def diagnostics_status(window: ProcessingWindow, *, budget_ms: float, name: str 
     ``budget_ms``: processing budget per frame (ms); ``stale_after_s``: WARN when no input for
     this long (s; None disables, e.g. for offline replay); ``extra``: more key -> value pairs.
     Keys: ``<stage>_ms_mean|p95|max`` for stage in decode, grid, lines, gp_fit, predict, label,
-    encode, total (+ segment), ``input_rate_hz``, ``frames_*``, ``points_*`` (last frame),
-    ``sigma_f``/``gain``/``sigma_n``, each ``result.stats`` key (last frame) and, for integer
-    counters, ``<key>_window`` (sum over the window), ``budget_ms``, ``window_frames``,
+    structure, encode, total (+ segment), ``input_rate_hz``, ``frames_*``, ``points_*`` (last
+    frame), ``sigma_f``/``gain``/``sigma_n``, each ``result.stats`` key (last frame) and, for
+    integer counters, ``<key>_window`` (sum over the window), ``budget_ms``, ``window_frames``,
     ``last_error``.
     """
     from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
@@ -234,6 +255,7 @@ def diagnostics_status(window: ProcessingWindow, *, budget_ms: float, name: str 
     add('window_frames', snap['window'])
     add('last_error', snap['last_error'] or 'none')
     add('frames_with_input_warnings', snap['frames_with_warnings'])
+    add('input_warnings_in_window', snap['warnings_in_window'])
     add('last_input_warning', snap['last_warning'] or 'none')
     for key, value in (extra or {}).items():
         add(key, value)
@@ -246,9 +268,10 @@ def diagnostics_status(window: ProcessingWindow, *, budget_ms: float, name: str 
         prefix = 'bad input' if snap['last_outcome'] == 'bad_input' else 'processing error'
         message = f"{prefix}: {snap['last_error']}"
     else:
-        if snap['last_warnings']:
-            warnings.append('input: ' + '; '.join(snap['last_warnings']))
-        total = summary.get('total')
+        if snap['warnings_in_window'] > 0:
+            warnings.append(f"input: {snap['last_warning']} ({snap['warnings_in_window']} "
+                            f"frame(s) with input warnings in the window)")
+        total = _timing_summary(snap['budget_timings']).get('total')
         if total is not None and total[0] > budget_ms:
             warnings.append(f'mean processing {total[0]:.1f} ms > budget {budget_ms:g} ms')
         if snap['drops_in_window'] > 0:

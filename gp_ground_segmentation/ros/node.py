@@ -18,11 +18,16 @@ Topics (relative names; remap e.g. ``-r points:=/velodyne_points``):
              a RELIABLE subscriber would receive nothing from best-effort LiDAR drivers.
   ground     (pub) sensor_msgs/PointCloud2, RELIABLE, VOLATILE, keep last 1.
   obstacles  (pub) same QoS as ground.
+  ground_surface (pub) same QoS: the GP ground surface, PointCloud2 x, y, z, z_std (FLOAT32, m;
+             z = GP mean + ground offset, z_std = posterior std of the latent ground height
+             without sensor noise; core/surface.py) at the bin edges
+             of every segment with ground candidates, input header; only while
+             ``publish_ground_surface`` is true.
   /diagnostics (pub) diagnostic_msgs/DiagnosticArray, every diagnostics_period_s.
 Output QoS: a RELIABLE publisher matches both RELIABLE subscribers (RViz's and ros2 bag record's
 default) and BEST_EFFORT ones, whereas a BEST_EFFORT publisher is invisible to RELIABLE
 subscribers; depth 1 keeps the latest-wins rule downstream (a slow subscriber never makes us
-buffer old clouds); VOLATILE so no stale cloud is replayed to late joiners. All three topics
+buffer old clouds); VOLATILE so no stale cloud is replayed to late joiners. All the topics
 accept ``qos_overrides`` (history, depth, reliability) from the parameter file.
 
 Parameters: every ``SegmenterParams`` field and the node-only ones of ``config.NODE_PARAMS`` are
@@ -36,6 +41,8 @@ new segmenter parameters at the start of the next frame, never mid-frame.
 
 from __future__ import annotations
 
+import argparse
+import copy
 import re
 import sys
 import threading
@@ -46,6 +53,7 @@ import rclpy
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
                                 ParameterType, SetParametersResult)
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.exceptions import ParameterException
 from rclpy.node import Node
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
@@ -56,13 +64,20 @@ from sensor_msgs.msg import PointCloud2
 
 from .cloud import CloudFormatError
 from .config import (NODE_NAME, NODE_PARAMS, ParameterConfigError, all_param_specs,
-                     check_param_value, is_ros_builtin, split_params)
+                     check_param_value, is_ros_builtin, load_params_file, split_params)
 from .diagnostics import ProcessingWindow, diagnostics_array, diagnostics_status
 from ..core.params import SegmenterParams
-from .pipeline import process_cloud
+from .pipeline import OUTPUT_SWITCHES, process_cloud
+from .shutdown import QuietShutdown
 from ..core.segmenter import GroundSegmenter
+from ..core.sensor_frame import NOT_CENTRED
 
-__all__ = ['GroundSegmentationNode', 'OUTPUT_QOS', 'main']
+__all__ = ['GroundSegmentationNode', 'INPUT_TOPIC', 'OUTPUT_QOS', 'OUTPUT_TOPICS', 'main']
+
+INPUT_TOPIC = 'points'  # relative names: remap them
+OUTPUT_TOPICS = ('ground', 'obstacles', 'ground_surface')
+
+RCLError = _rclpy.RCLError  # rcl failures, e.g. a parameter file it cannot parse
 
 OUTPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                         reliability=ReliabilityPolicy.RELIABLE,
@@ -133,6 +148,7 @@ class GroundSegmentationNode(Node):
         self._log_times = OrderedDict()
         self._last_layout = None  # layout of the last processed frame
         self._last_stamp = None  # header stamp (s) of the last processed frame
+        self._centring_logged = False  # 'not sensor-centred' is logged once per process
         try:
             self._setup()
         except BaseException:
@@ -166,6 +182,7 @@ class GroundSegmentationNode(Node):
         self._budget_ms = float(node_values['processing_budget_ms'])
         self._diag_period_s = float(node_values['diagnostics_period_s'])
         queue_size = int(node_values['queue_size'])
+        self._outputs = {name: bool(node_values[name]) for name in OUTPUT_SWITCHES}
 
         self.window = ProcessingWindow(int(node_values['diagnostics_window']))
         self._segmenter = self._segmenter_factory(self._declared_params)
@@ -173,15 +190,18 @@ class GroundSegmentationNode(Node):
         self._cond = threading.Condition()
         self._slot = deque(maxlen=queue_size)
 
-        self._pub_ground = self.create_publisher(
-            PointCloud2, 'ground', OUTPUT_QOS,
-            qos_overriding_options=QoSOverridingOptions.with_default_policies())
-        self._pub_obstacles = self.create_publisher(
-            PointCloud2, 'obstacles', OUTPUT_QOS,
-            qos_overriding_options=QoSOverridingOptions.with_default_policies())
+        # Each endpoint gets its own copy of its profile: with qos_overriding_options rclpy
+        # writes the overrides into the profile object it is given, so a shared module-level
+        # profile would carry a '/ground' override over to '/obstacles' (and to rclpy's
+        # global qos_profile_sensor_data).
+        self._pub_ground, self._pub_obstacles, self._pub_surface = (
+            self.create_publisher(
+                PointCloud2, topic, copy.copy(OUTPUT_QOS),
+                qos_overriding_options=QoSOverridingOptions.with_default_policies())
+            for topic in OUTPUT_TOPICS)
         self._pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', DIAGNOSTICS_QOS)
         self._sub = self.create_subscription(
-            PointCloud2, 'points', self._on_cloud, qos_profile_sensor_data,
+            PointCloud2, INPUT_TOPIC, self._on_cloud, copy.copy(qos_profile_sensor_data),
             qos_overriding_options=QoSOverridingOptions.with_default_policies())
         self._diag_timer = self.create_timer(self._diag_period_s, self._on_diag_timer)
 
@@ -192,8 +212,9 @@ class GroundSegmentationNode(Node):
                                         daemon=True)
         self._worker.start()
         self.get_logger().info(
-            f"listening on '{self._sub.topic_name}', publishing '{self._pub_ground.topic_name}'"
-            f" and '{self._pub_obstacles.topic_name}' (slot {queue_size}, budget "
+            f"listening on '{self._sub.topic_name}', publishing '{self._pub_ground.topic_name}',"
+            f" '{self._pub_obstacles.topic_name}' and '{self._pub_surface.topic_name}' (slot "
+            f'{queue_size}, budget '
             f'{self._budget_ms:g} ms)')
 
     # --- public state (read-only views, for tests and tools) --------------------------------
@@ -308,7 +329,7 @@ class GroundSegmentationNode(Node):
         frame_id = None
         try:
             frame_id = msg.header.frame_id
-            out = process_cloud(msg, self._segmenter)
+            out = process_cloud(msg, self._segmenter, **self._outputs)
             notes = list(out.warnings)
             try:
                 notes += self._stream_warnings(msg)
@@ -317,8 +338,14 @@ class GroundSegmentationNode(Node):
                 notes.append(f'input check failed: {_one_line(exc)}')
             self._pub_ground.publish(out.ground)
             self._pub_obstacles.publish(out.obstacles)
+            if out.surface is not None:
+                self._pub_surface.publish(out.surface)
             self.window.record_frame(out, frame_id, notes)
             for note in notes:
+                if note.startswith(NOT_CENTRED):
+                    if self._centring_logged:  # a property of the set-up: say it once
+                        continue
+                    self._centring_logged = True
                 self._log_throttled('warning',
                                     f"suspicious input cloud (frame_id '{frame_id}'): {note}")
         except CloudFormatError as exc:
@@ -377,6 +404,9 @@ class GroundSegmentationNode(Node):
                 self._declared_params = self._declared_params.replace(**seg)
                 with self._cond:
                     self._pending_params = self._declared_params
+            # a new dict, not an update: the worker reads the old one whole or the new one
+            self._outputs = dict(self._outputs, **{name: bool(node[name])
+                                                   for name in OUTPUT_SWITCHES if name in node})
             if 'processing_budget_ms' in node:
                 self._budget_ms = float(node['processing_budget_ms'])
             if 'diagnostics_window' in node:
@@ -409,27 +439,94 @@ class GroundSegmentationNode(Node):
         super().destroy_node()
 
 
+USAGE = """ground_segmentation_node [--help] [--ros-args ...]
+
+Ground/obstacle split of LiDAR point clouds with a Gaussian-process ground model (ROS 2 node).
+
+Topics (relative names): points (sub, PointCloud2, sensor-data QoS), ground and obstacles (pub,
+PointCloud2), /diagnostics. The clouds must be in the sensor's frame, or give its pose with the
+sensor_* parameters (README "Frames").
+
+Examples:
+  ground_segmentation_node --ros-args -r points:=/velodyne_points --params-file params.yaml
+  ground_segmentation_node --ros-args -r __ns:=/seg -r points:=/ouster/points
+  ros2 launch gp_ground_segmentation ground_segmentation.launch.py points:=/velodyne_points
+"""
+
+
+def _split_command_line(args: list) -> tuple[list, list]:
+    """(non-ROS arguments, ``--params-file`` values) of ``args`` (without the program name).
+
+    ROS arguments are those between ``--ros-args`` and ``--`` (or the end). Done here rather
+    than with rclpy.utilities.remove_ros_args, which already fails on a missing params file.
+    """
+    plain, files, in_ros, i = [], [], False, 0
+    while i < len(args):
+        token = args[i]
+        if token == '--ros-args':
+            in_ros = True
+        elif token == '--' and in_ros:
+            in_ros = False
+        elif in_ros and token == '--params-file' and i + 1 < len(args):
+            files.append(args[i + 1])
+            i += 1
+        elif not in_ros:
+            plain.append(token)
+        i += 1
+    return plain, files
+
+
+def _check_params_file_readable(path: str) -> None:
+    """rcl reports a missing or unreadable file as an RCLError traceback; say it in one line."""
+    try:
+        with open(path, 'rb'):
+            pass
+    except OSError as exc:
+        raise ParameterConfigError(
+            f'cannot read parameter file {path}: {exc.strerror or exc}') from None
+
+
+def _check_params_file_sections(path: str, node) -> None:
+    """A params file with no section for this node would be ignored silently by rcl (e.g. a
+    'ground_segmentation:' key when the node runs in a namespace): refuse to start instead."""
+    load_params_file(path, node.get_name(), node.get_namespace())
+
+
 def main(args=None):
     """Entry point of ``ros2 run gp_ground_segmentation ground_segmentation_node``."""
-    rclpy.init(args=args)
+    argv = list(sys.argv if args is None else args)
+    parser = argparse.ArgumentParser(prog='ground_segmentation_node', usage=USAGE,
+                                     add_help=True)
+    plain_args, params_files = _split_command_line(argv[1:])
+    parser.parse_known_args(plain_args)  # --help prints the usage and exits here
+    logger = rclpy.logging.get_logger(NODE_NAME)
+    quiet = QuietShutdown()
+    quiet.install()
     node = None
     exit_code = 0
     try:
+        for path in params_files:
+            _check_params_file_readable(path)
+        rclpy.init(args=argv)
         # The executor exists before the node announces itself, so a Ctrl-C right after the
         # 'listening' line never lands inside executor construction (an rclpy 7.1 __del__ race).
         executor = SingleThreadedExecutor()
         node = GroundSegmentationNode()
+        for path in params_files:
+            _check_params_file_sections(path, node)
         executor.add_node(node)
         executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except (ParameterConfigError, ParameterException) as exc:
-        rclpy.logging.get_logger(NODE_NAME).fatal(f'invalid parameters: {_one_line(exc, 1000)}')
+    except (ParameterConfigError, ParameterException, RCLError) as exc:
+        logger.fatal(f'invalid parameters: {_one_line(exc, 1000)}')
         exit_code = 1
     finally:
+        quiet.ignore_signals()  # from here on a signal must not interrupt the clean-up
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
+        quiet.ignore_signals()  # rclpy restores the handlers it replaced when it shuts down
     if exit_code:
         sys.exit(exit_code)
 

@@ -1,5 +1,5 @@
 # SPDX-License-Identifier: Apache-2.0
-"""One frame through the segmenter: PointCloud2 -> numpy -> GroundSegmenter -> two PointCloud2.
+"""One frame through the segmenter: PointCloud2 -> numpy -> GroundSegmenter -> output PointCloud2s.
 
 This is the single code path shared by the ROS node and the offline bag replay, so that both
 publish exactly the same clouds and report the same timings. Nothing here needs ``rclpy.init()``.
@@ -10,6 +10,11 @@ Invalid points (NaN/Inf or the (0, 0, 0) no-return value) go to neither output; 
 in ``result.num_invalid``. Before returning, the split is checked: ground + obstacles + invalid
 must equal the input point count with no point in both, otherwise ``RuntimeError`` is raised and
 nothing should be published (never a split that silently misses points).
+
+Optional outputs (node parameters of the same names): ``publish_ground_surface`` adds the GP
+ground surface (``surface_cloud``: x, y, z, z_std FLOAT32 at the supported prediction points,
+input header); ``add_height_above_ground_field`` appends a FLOAT32 ``height_above_ground``
+field (z - z_hat, m) to the ground and obstacle clouds after every original byte.
 """
 
 from __future__ import annotations
@@ -19,13 +24,21 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .cloud import cloud_xyz, read_cloud, subset_cloud
+from .cloud import cloud_xyz, make_cloud, read_cloud, subset_cloud, with_float32_field
 from ..core.segmenter import SegmentationResult
+from ..core.sensor_frame import centring_note
 
-__all__ = ['FrameOutput', 'process_cloud', 'input_warnings', 'STAGES', 'frame_timings']
+__all__ = ['FrameOutput', 'process_cloud', 'input_warnings', 'STAGES', 'frame_timings',
+           'surface_cloud', 'HEIGHT_FIELD', 'OUTPUT_SWITCHES', 'SURFACE_FIELDS']
+
+# Node parameters (config.NODE_PARAMS) that switch the optional outputs: process_cloud keywords
+OUTPUT_SWITCHES = ('publish_ground_surface', 'add_height_above_ground_field')
+HEIGHT_FIELD = 'height_above_ground'  # name of the optional per-point field (m)
+SURFACE_FIELDS = ('x', 'y', 'z', 'z_std')  # fields of the ground surface cloud (m)
 
 # Stages reported in diagnostics, in pipeline order (segmenter stages from result.timings_ms).
-STAGES = ('decode', 'grid', 'lines', 'gp_fit', 'predict', 'label', 'encode', 'total')
+STAGES = ('decode', 'grid', 'lines', 'gp_fit', 'predict', 'label', 'structure', 'encode',
+          'total')
 
 
 @dataclass
@@ -35,12 +48,14 @@ class FrameOutput:
     ground: object  # sensor_msgs/PointCloud2 (same type as the input), ground points
     obstacles: object  # same, valid non-ground points
     result: SegmentationResult
-    decode_ms: float  # PointCloud2 -> (N, 3) float64 (ms)
+    decode_ms: float  # PointCloud2 -> (N, 3) x, y, z in the cloud's precision (ms)
     encode_ms: float  # both subset clouds built (ms)
     total_ms: float = float('nan')  # wall time of process_cloud: decode + segment + encode (ms)
     # One-line notes about a usable but suspicious input (empty, no valid point, trailing
-    # bytes); the node reports them as a diagnostics WARN. Empty for a normal frame.
+    # bytes, not sensor-centred); the node reports them as a diagnostics WARN. Empty for a
+    # normal frame.
     warnings: list = field(default_factory=list)
+    surface: object = None  # PointCloud2 of the ground surface, when asked for
 
     @property
     def num_points(self) -> int:
@@ -61,15 +76,27 @@ def frame_timings(out: FrameOutput) -> dict:
     return timings
 
 
-def process_cloud(msg, segmenter) -> FrameOutput:
-    """Split ``msg`` (sensor_msgs/PointCloud2) into ground and obstacle clouds with ``segmenter``.
+def surface_cloud(header, surface, msg_type=None):
+    """PointCloud2 (x, y, z, z_std FLOAT32, ``header`` copied) of a GroundSurface's supported
+    prediction points."""
+    values = surface.points(supported_only=True)
+    packed = np.empty(values.shape[0], dtype=[(name, '<f4') for name in SURFACE_FIELDS])
+    for i, name in enumerate(SURFACE_FIELDS):
+        packed[name] = values[:, i]
+    return make_cloud(header, packed, msg_type)
+
+
+def process_cloud(msg, segmenter, *, publish_ground_surface: bool = False,
+                  add_height_above_ground_field: bool = False) -> FrameOutput:
+    """Split ``msg`` (sensor_msgs/PointCloud2) into ground and obstacle clouds with ``segmenter``;
+    the two keywords add the optional outputs of the module docstring.
 
     Raises ``cloud.CloudFormatError`` (a ValueError, one-line message) for an unusable layout
     (missing x/y/z, data too short, ...), and RuntimeError if the split is inconsistent.
     """
     t0 = time.perf_counter()
     points = read_cloud(msg)
-    xyz = cloud_xyz(points)
+    xyz = cloud_xyz(points, dtype=None)  # float32 for float32 fields: same labels, less work
     t1 = time.perf_counter()
     result = segmenter.segment(xyz)
     t2 = time.perf_counter()
@@ -87,15 +114,33 @@ def process_cloud(msg, segmenter) -> FrameOutput:
             f'{result.num_invalid} invalid != {n} points')
     ground = subset_cloud(msg, ground_mask)
     obstacles = subset_cloud(msg, obstacle_mask)
+    if add_height_above_ground_field:
+        height = result.height_above_ground
+        ground = with_float32_field(ground, HEIGHT_FIELD, height[ground_mask])
+        obstacles = with_float32_field(obstacles, HEIGHT_FIELD, height[obstacle_mask])
+    surface = None
+    if publish_ground_surface and result.ground_surface is not None:
+        surface = surface_cloud(msg.header, result.ground_surface, type(msg))
     t3 = time.perf_counter()
     return FrameOutput(ground=ground, obstacles=obstacles, result=result,
                        decode_ms=(t1 - t0) * 1e3, encode_ms=(t3 - t2) * 1e3,
-                       total_ms=(t3 - t0) * 1e3, warnings=input_warnings(msg, result))
+                       total_ms=(t3 - t0) * 1e3,
+                       warnings=input_warnings(msg, result, xyz, getattr(segmenter, 'params',
+                                                                         None)),
+                       surface=surface)
 
 
-def input_warnings(msg, result) -> list:
-    """One-line notes on a cloud that decoded fine but deserves a look (see FrameOutput)."""
+def input_warnings(msg, result, xyz=None, params=None) -> list:
+    """One-line notes on a cloud that decoded fine but deserves a look (see FrameOutput).
+
+    With ``xyz`` (the decoded points): also whether the cloud looks sensor-centred, around
+    the sensor position of ``params`` (SegmenterParams) when given.
+    """
     notes = []
+    if xyz is not None:
+        note = centring_note(xyz, getattr(params, 'sensor_pose', None))
+        if note:
+            notes.append(note)
     n = int(result.valid_mask.size)
     if n == 0:
         notes.append('empty cloud (0 points)')

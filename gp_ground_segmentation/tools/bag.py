@@ -1,6 +1,7 @@
 # SPDX-License-Identifier: Apache-2.0
 """Offline bag replay: read PointCloud2 frames from a bag (or point files), segment them with the
-node's own pipeline, and write a ROS 2 bag with ``<topic>/ground``, ``<topic>/obstacles`` and
+node's own pipeline, and write a ROS 2 bag with ``<topic>/ground``, ``<topic>/obstacles``,
+``<topic>/ground_surface`` (when ``publish_ground_surface`` is on, the default) and
 ``/diagnostics``.
 
 Reading and writing use ``rosbags`` (AnyReader: ROS 2 mcap/sqlite3 directories or bare
@@ -72,6 +73,16 @@ class InputFrame:
     msg: object
 
 
+def normalize_topic(topic: Optional[str]) -> Optional[str]:
+    """Bag topics are absolute: 'velodyne_points' means '/velodyne_points'."""
+    if topic is None:
+        return None
+    topic = topic.strip()
+    if not topic or topic == '/':
+        raise BagError('empty topic name')
+    return topic if topic.startswith('/') else '/' + topic
+
+
 def is_point_file(path: Path) -> bool:
     return path.suffix.lower() in POINT_FILE_SUFFIXES
 
@@ -99,8 +110,9 @@ def _expand_inputs(inputs: Sequence) -> tuple[str, list[Path]]:
     return 'bag', paths
 
 
-def _pointfile_cloud(path: Path, index: int):
-    """A PointCloud2 from a KITTI .bin or a .pcd, stamped i * 0.1 s, frame_id 'velodyne'."""
+def _pointfile_cloud(path: Path, index: int, frame_id: str = SYNTHETIC_FRAME_ID):
+    """A PointCloud2 from a KITTI .bin or a .pcd, stamped i * 0.1 s (from 0, i.e. 1970: point
+    files have no time), with ``frame_id``."""
     from builtin_interfaces.msg import Time
     from std_msgs.msg import Header
 
@@ -117,7 +129,7 @@ def _pointfile_cloud(path: Path, index: int):
             np.dtype([(n, '<f4') for n in names])).reshape(-1)
     stamp_ns = index * SYNTHETIC_PERIOD_NS
     header = Header(stamp=Time(sec=stamp_ns // 1_000_000_000, nanosec=stamp_ns % 1_000_000_000),
-                    frame_id=SYNTHETIC_FRAME_ID)
+                    frame_id=frame_id)
     return make_cloud(header, points), stamp_ns
 
 
@@ -129,8 +141,10 @@ class FrameSource:
     """
 
     def __init__(self, inputs: Sequence, topic: Optional[str] = None,
-                 max_frames: Optional[int] = None):
+                 max_frames: Optional[int] = None, frame_id: str = SYNTHETIC_FRAME_ID):
         self.kind, self.paths = _expand_inputs(inputs)
+        topic = normalize_topic(topic)
+        self.frame_id = frame_id  # header.frame_id of clouds made from point files
         self.requested_topic = topic
         self.topic = topic or DEFAULT_TOPIC
         self.max_frames = max_frames
@@ -167,9 +181,11 @@ class FrameSource:
 
     def _open_bag(self) -> None:
         from rosbags.highlevel import AnyReader
+        from rosbags.typesys import Stores, get_typestore
         name = self.description
         try:
-            reader = AnyReader(self.paths)
+            # Older rosbag2 bags (metadata < 8) carry no message definitions: use Jazzy's types.
+            reader = AnyReader(self.paths, default_typestore=get_typestore(Stores.ROS2_JAZZY))
             reader.open()
         except _reader_errors() as err:
             raise BagError(f'cannot read bag {name} (corrupt, truncated or not a bag): '
@@ -187,11 +203,16 @@ class FrameSource:
                 self.note = f'topic {DEFAULT_TOPIC} not in the bag; using {clouds[0]}'
                 self.topic = clouds[0]
             else:
-                raise BagError(f'topic {self.topic} not in bag {name}; its topics: {listing}')
+                hint = '' if clouds else (
+                    f'; none is {POINTCLOUD2}: raw sensor packets must be decoded to point '
+                    f'clouds first (velodyne_pointcloud, ouster-ros, Nebula)')
+                raise BagError(f'topic {self.topic} not in bag {name}; its topics: {listing}'
+                               f'{hint}')
         types = topics[self.topic]
         if types != {POINTCLOUD2}:
             raise BagError(f'topic {self.topic} carries {"|".join(sorted(types))}, not '
-                           f'{POINTCLOUD2}')
+                           f'{POINTCLOUD2}; the segmenter needs point clouds (decode raw '
+                           f'packets with the sensor\'s driver first); its topics: {listing}')
         self._connections = [c for c in reader.connections if c.topic == self.topic]
         self.count = sum(c.msgcount for c in self._connections)
         if self.count == 0:
@@ -207,7 +228,7 @@ class FrameSource:
         from .io import PointFileError
         for i, path in enumerate(self.paths[:self.count]):
             try:
-                msg, stamp = _pointfile_cloud(path, i)
+                msg, stamp = _pointfile_cloud(path, i, self.frame_id)
             except (PointFileError, OSError, ValueError) as err:
                 raise BagError(f'{path}: {_one_line(err)}') from None
             yield InputFrame(i, stamp, msg)
@@ -401,6 +422,17 @@ def load_segmenter_params(params_file: Optional[str]):
     return load_params(params_file)[0]
 
 
+def warm_up(log=None) -> None:
+    """Load the compiled GP kernel before the first frame, as the node's worker does, so the
+    first frame's timing (and its diagnostics) is not that of numba's compile/cache load."""
+    from ..core import gp_compiled
+    try:
+        gp_compiled.warm_up()
+    except Exception as exc:  # noqa: BLE001 - the numpy path still works
+        if log:
+            log(f'compiled GP kernel unavailable ({_one_line(exc)}); the first frame loads it')
+
+
 def _storage_plugin(storage: str):
     from rosbags.rosbag2 import StoragePlugin
     plugins = {'mcap': StoragePlugin.MCAP, 'sqlite3': StoragePlugin.SQLITE3}
@@ -453,20 +485,29 @@ def _move_into_place(tmp: Path, out: Path) -> None:
 def replay(inputs: Sequence, out_bag, *, topic: Optional[str] = None,
            params_file: Optional[str] = None, storage: str = 'mcap', force: bool = False,
            max_frames: Optional[int] = None, progress: Optional[Progress] = None,
-           log=None) -> ReplaySummary:
+           log=None, output_prefix: Optional[str] = None,
+           frame_id: str = SYNTHETIC_FRAME_ID) -> ReplaySummary:
     """Segment every PointCloud2 of ``inputs`` on ``topic`` and write the result bag ``out_bag``.
 
     ``inputs``: one bag (directory, .mcap, .db3, or ROS 1 .bag files) or point files / a directory
-    of them. Output topics: ``<topic>/ground``, ``<topic>/obstacles`` (input header and all fields
-    kept, points byte for byte) and ``/diagnostics`` (one DiagnosticArray per frame), each written
-    at the input message's bag time. A frame the pipeline rejects (malformed cloud) is skipped,
-    counted and reported with an ERROR diagnostics entry, as the node does. Raises BagError.
+    of them (``frame_id`` is their header.frame_id). Output topics:
+    ``<output_prefix>/ground``, ``<output_prefix>/obstacles`` (input header and all fields
+    kept, points byte for byte, plus a ``height_above_ground`` field when the parameter file's
+    ``add_height_above_ground_field`` is true), ``<output_prefix>/ground_surface`` (the GP ground
+    surface, unless ``publish_ground_surface`` is false) and ``/diagnostics`` (one
+    DiagnosticArray per frame), each written at the input message's bag time.
+    ``output_prefix`` defaults to the input topic, so the outputs sit beside their input in a
+    bag that may hold several clouds; ``''`` gives ``/ground``, ``/obstacles`` and
+    ``/ground_surface``, the node's names in the root namespace. A frame the pipeline rejects
+    (malformed cloud) is skipped, counted and reported with an ERROR diagnostics entry, as the
+    node does. Raises BagError.
     """
     from rclpy.serialization import serialize_message
     from rosbags.rosbag2 import Writer, WriterError
     from rosbags.typesys import Stores, get_typestore
 
     from ..ros.diagnostics import ProcessingWindow
+    from ..ros.pipeline import OUTPUT_SWITCHES
     from ..core.segmenter import GroundSegmenter
 
     out = Path(out_bag)
@@ -475,11 +516,13 @@ def replay(inputs: Sequence, out_bag, *, topic: Optional[str] = None,
         raise BagError('--max-frames must be at least 1')
     seg_params, node_params = load_params(params_file)
     segmenter = GroundSegmenter(seg_params)
+    warm_up(log)
     window = ProcessingWindow(int(node_params.get('diagnostics_window', 50)))
     budget_ms = float(node_params.get('processing_budget_ms', 100.0))
+    outputs = {name: bool(node_params[name]) for name in OUTPUT_SWITCHES}
     summary = ReplaySummary(output=str(out))
     t_start = time.perf_counter()
-    with FrameSource(inputs, topic, max_frames) as source:
+    with FrameSource(inputs, topic, max_frames, frame_id) as source:
         _check_output(out, force, source.paths)
         summary.topic, summary.note = source.topic, source.note
         if log and source.note:
@@ -493,16 +536,22 @@ def replay(inputs: Sequence, out_bag, *, topic: Optional[str] = None,
         try:
             writer = Writer(tmp, version=9, storage_plugin=plugin)
             with writer:
-                conn_ground = writer.add_connection(f'{source.topic}/ground', POINTCLOUD2,
+                prefix = source.topic if output_prefix is None else output_prefix
+                prefix = '/' + prefix.strip('/') if prefix.strip('/') else ''
+                conn_ground = writer.add_connection(f'{prefix}/ground', POINTCLOUD2,
                                                     typestore=typestore)
-                conn_obst = writer.add_connection(f'{source.topic}/obstacles', POINTCLOUD2,
+                conn_obst = writer.add_connection(f'{prefix}/obstacles', POINTCLOUD2,
                                                   typestore=typestore)
                 conn_diag = writer.add_connection(DIAGNOSTICS_TOPIC, DIAGNOSTIC_ARRAY,
                                                   typestore=typestore)
-                conns = (conn_ground, conn_obst, conn_diag)
+                conn_surface = None
+                if outputs['publish_ground_surface']:
+                    conn_surface = writer.add_connection(f'{prefix}/ground_surface',
+                                                         POINTCLOUD2, typestore=typestore)
+                conns = (conn_ground, conn_obst, conn_diag, conn_surface)
                 for frame in source:
                     _replay_frame(frame, segmenter, writer, conns, summary, window, budget_ms,
-                                  serialize_message)
+                                  serialize_message, outputs)
                     progress.update(frame.index + 1)
             if summary.frames == 0:
                 raise BagError(f'none of the {summary.skipped} frame(s) could be segmented: '
@@ -519,13 +568,14 @@ def replay(inputs: Sequence, out_bag, *, topic: Optional[str] = None,
 
 
 def _replay_frame(frame, segmenter, writer, conns, summary, window, budget_ms,
-                  serialize_message) -> None:
-    """Segment one frame, write its two clouds and a DiagnosticArray built like the node's."""
+                  serialize_message, outputs) -> None:
+    """Segment one frame, write its clouds and a DiagnosticArray built like the node's;
+    ``outputs``: the node's output switches (keywords of ``process_cloud``)."""
     from ..ros.cloud import CloudFormatError
     from ..ros.diagnostics import diagnostics_array, diagnostics_status
     from ..ros.pipeline import frame_timings, process_cloud
 
-    conn_ground, conn_obst, conn_diag = conns
+    conn_ground, conn_obst, conn_diag, conn_surface = conns
     msg = frame.msg
     frame_id = msg.header.frame_id
     t0 = time.perf_counter()
@@ -533,7 +583,7 @@ def _replay_frame(frame, segmenter, writer, conns, summary, window, budget_ms,
     bag_time_s = frame.timestamp_ns * 1e-9
     window.record_received(frame_id, now=bag_time_s)  # input rate in bag time, not wall time
     try:
-        out = process_cloud(msg, segmenter)
+        out = process_cloud(msg, segmenter, **outputs)
     except (CloudFormatError, ValueError, RuntimeError) as err:  # the node drops these too
         text = _one_line(err)
         window.record_failure(text, isinstance(err, ValueError), frame_id)
@@ -545,6 +595,8 @@ def _replay_frame(frame, segmenter, writer, conns, summary, window, budget_ms,
         window.record_frame(out, frame_id)
         writer.write(conn_ground, frame.timestamp_ns, serialize_message(out.ground))
         writer.write(conn_obst, frame.timestamp_ns, serialize_message(out.obstacles))
+        if conn_surface is not None and out.surface is not None:
+            writer.write(conn_surface, frame.timestamp_ns, serialize_message(out.surface))
     status = diagnostics_status(window, budget_ms=budget_ms, stale_after_s=None, now=bag_time_s,
                                 extra={'source': 'gp-ground-seg replay', 'frame_index':
                                        frame.index})

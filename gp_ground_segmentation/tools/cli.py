@@ -1,5 +1,5 @@
 # SPDX-License-Identifier: Apache-2.0
-"""``gp-ground-seg``: offline tools around the segmenter (no ROS graph needed).
+"""``gp-ground-seg``: tools around the segmenter (all but play/hz need no ROS graph).
 
 Subcommands:
 
@@ -9,6 +9,11 @@ Subcommands:
   and /diagnostics out, using the node's pipeline and parameter file.
 * ``plot FRAME``       side view of one angular segment + bird's-eye view of the frame (PNG).
 * ``make-sample``      re-write the first frames of a bag as a small compressed mcap (data/).
+* ``batch IN... --out DIR``  replay many inputs, in-process or on Dask (tools/batch.py).
+* ``tune FRAME... --out params.yaml``  Optuna search of parameters on labelled scans
+  (tools/tune.py).
+* ``play IN``          publish a bag's clouds live with their recorded timing (tools/play.py).
+* ``hz TOPIC...``      print topic rates and a one-line summary of the last message.
 
 Every expected failure prints one line ``gp-ground-seg <cmd>: error: ...`` on stderr and exits
 with status 2; there is no traceback for bad input.
@@ -75,7 +80,7 @@ def _nan_to_none(value):
 
 
 def cmd_eval(args) -> int:
-    from .bag import load_segmenter_params
+    from .bag import load_segmenter_params, warm_up
     from .evaluation import ground_metrics
     from .io import read_semantickitti_labels
     from ..ros.pipeline import frame_timings, process_cloud
@@ -86,6 +91,7 @@ def cmd_eval(args) -> int:
     params = load_segmenter_params(args.params)
     labels_files = args.labels or []
     segmenter = GroundSegmenter(params)
+    warm_up(lambda text: print(f'gp-ground-seg eval: note: {text}', file=sys.stderr))
     frames = []
     k = 0
     for name, msg in _eval_frames(args.files, args.topic):
@@ -97,6 +103,9 @@ def cmd_eval(args) -> int:
         timings = {stage: float(np.median([frame_timings(r)[stage] for r in runs]))
                    for stage in frame_timings(out)}
         n_valid = int(np.count_nonzero(res.valid_mask))
+        if n_valid == 0:
+            raise CliError(f'{name}: no valid point ({int(res.valid_mask.size)} points, all '
+                           f'NaN/Inf or (0, 0, 0)): nothing to evaluate')
         n_ground = int(np.count_nonzero(res.ground_mask))
         row = {'input': name, 'points': int(res.valid_mask.size), 'valid': n_valid,
                'ground': n_ground, 'ground_share': n_ground / n_valid if n_valid else None,
@@ -157,6 +166,7 @@ def cmd_replay(args) -> int:
         raise CliError('give an input (bag or point files) and an output bag directory')
     summary = replay(inputs, out, topic=args.topic, params_file=args.params,
                      storage=args.storage, force=args.force, max_frames=args.max_frames,
+                     output_prefix=args.output_prefix, frame_id=args.frame_id,
                      log=lambda text: print(f'gp-ground-seg replay: note: {text}',
                                             file=sys.stderr))
     print(summary.table())
@@ -173,6 +183,9 @@ def cmd_replay(args) -> int:
 def cmd_plot(args) -> int:
     from .bag import load_segmenter_params, read_frame
     from .plot import plot_frame
+    out = Path(args.out)
+    if (out.exists() or out.is_symlink()) and not args.force:
+        raise CliError(f'{out} exists; pass --force to overwrite it')
     params = load_segmenter_params(args.params)
     msg, name = read_frame(args.frame, args.topic)
     labels = None
@@ -180,7 +193,6 @@ def cmd_plot(args) -> int:
         from .io import read_semantickitti_labels
         labels = read_semantickitti_labels(args.labels,
                                            expected_points=int(msg.height) * int(msg.width))
-    out = Path(args.out)
     info = plot_frame(msg, out, params=params, segment=args.segment, labels=labels, title=name,
                       vegetation_is_ground=args.vegetation_ground)
     print(f'wrote {out} (segment {info["segment"]}, {info["points"]} points)')
@@ -207,6 +219,14 @@ class _Parser(argparse.ArgumentParser):
 
     def error(self, message):
         self.exit(EXIT_ERROR, f'{self.prog}: error: {" ".join(message.split())}\n')
+
+
+def add_frame_id_option(parser) -> None:
+    """--frame-id: the header.frame_id given to clouds made from .bin/.pcd files."""
+    from .bag import SYNTHETIC_FRAME_ID
+    parser.add_argument('--frame-id', default=SYNTHETIC_FRAME_ID,
+                        help='header.frame_id of clouds made from .bin/.pcd files (default '
+                        f'{SYNTHETIC_FRAME_ID})')
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -236,9 +256,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser('replay', help='bag in -> ground/obstacles/diagnostics bag out',
                        description='Segment every PointCloud2 of a bag (ROS 2 mcap/sqlite3 '
-                       'directory or file, ROS 1 .bag) or of .bin/.pcd files (stamps i*0.1 s, '
-                       'frame_id velodyne) with the node pipeline, and write a ROS 2 bag with '
-                       '<topic>/ground, <topic>/obstacles and /diagnostics.')
+                       'directory or file, ROS 1 .bag) or of .bin/.pcd files (stamps i*0.1 s '
+                       'from 0, --frame-id) with the node pipeline, and write a ROS 2 bag with '
+                       '<topic>/ground, <topic>/obstacles (see --output-prefix) and '
+                       '/diagnostics.')
     p.add_argument('inputs', nargs='+', metavar='IN ... OUT_BAG',
                    help='input bag, point files or a directory of them; last: the output bag')
     p.add_argument('--topic', default=None,
@@ -248,6 +269,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--storage', choices=('mcap', 'sqlite3'), default='mcap')
     p.add_argument('--force', action='store_true', help='overwrite OUT_BAG if it exists')
     p.add_argument('--max-frames', type=int, metavar='K', help='stop after K frames')
+    p.add_argument('--output-prefix', metavar='PREFIX', default=None,
+                   help='output topics PREFIX/ground and PREFIX/obstacles (default: the input '
+                   "topic, so outputs sit beside their input; '' gives /ground and /obstacles "
+                   'like the node in the root namespace)')
+    add_frame_id_option(p)
     p.set_defaults(func=cmd_replay)
 
     p = sub.add_parser('plot', help='plot one frame (side view of a segment + bird\'s-eye view)',
@@ -263,6 +289,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--vegetation-ground', action='store_true',
                    help='count class 70 vegetation as ground for the error colouring')
     p.add_argument('--out', required=True, metavar='FIG.png')
+    p.add_argument('--force', action='store_true', help='overwrite FIG.png if it exists')
     p.set_defaults(func=cmd_plot)
 
     p = sub.add_parser('make-sample', help='write the small sample bag shipped in data/')
@@ -271,6 +298,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--frames', type=int, default=3)
     p.add_argument('--topic', default='/velodyne_points')
     p.set_defaults(func=cmd_make_sample)
+
+    from . import batch, tune  # their own modules; optional Dask/Optuna load only when run
+    batch.add_parser(sub)
+    tune.add_parser(sub)
+    from .play import register as register_live_tools
+    register_live_tools(sub)  # play, hz (tools/play.py)
     return parser
 
 

@@ -1,7 +1,7 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Ground-segmentation metrics against SemanticKITTI labels or synthetic per-point truth.
+"""Ground-segmentation metrics against SemanticKITTI or RELLIS-3D labels or synthetic truth.
 
-Protocol (follows the Patchwork / Patchwork++ evaluation of SemanticKITTI):
+Protocol for SemanticKITTI (follows the Patchwork / Patchwork++ evaluation):
 
 * ground classes: 40 road, 44 parking, 48 sidewalk, 49 other-ground, 60 lane-marking, 72 terrain;
 * ignored: 0 unlabeled and 1 outlier are left out of every count;
@@ -12,9 +12,15 @@ Protocol (follows the Patchwork / Patchwork++ evaluation of SemanticKITTI):
 
 "Positive" means *ground*: precision = TP / (TP + FP) is the share of points called ground that are
 ground, recall = TP / (TP + FN) the share of true ground that was found.
+
+RELLIS-3D (``ontology=RELLIS_3D``) has its own class ids: ground = 1 dirt, 3 grass, 10 asphalt,
+23 concrete, 31 puddle, 33 mud; 0 void is ignored (it also holds every (0, 0, 0) no-return of
+the organised Ouster cloud); everything else (trees, bushes, fences, people, ...) is non-ground.
 """
 
 from __future__ import annotations
+
+from typing import NamedTuple, Optional
 
 import numpy as np
 
@@ -23,19 +29,42 @@ IGNORED_CLASSES = (0, 1)
 VEGETATION_CLASS = 70
 
 
+class LabelOntology(NamedTuple):
+    """Which semantic classes of a labelled data set are ground and which are left out."""
+
+    name: str
+    ground: tuple
+    ignored: tuple
+    vegetation: Optional[int] = None  # the class ``vegetation_is_ground`` adds, if any
+
+
+SEMANTIC_KITTI = LabelOntology('SemanticKITTI', GROUND_CLASSES, IGNORED_CLASSES, VEGETATION_CLASS)
+RELLIS_3D = LabelOntology('RELLIS-3D', (1, 3, 10, 23, 31, 33), (0,))
+# name -> (ground classes, ignored classes), for tools that take the two lists (tools.tune)
+DATASET_CLASSES = {'semantickitti': (SEMANTIC_KITTI.ground, SEMANTIC_KITTI.ignored),
+                   'rellis3d': (RELLIS_3D.ground, RELLIS_3D.ignored)}
+
+
 def semantic_classes(labels: np.ndarray) -> np.ndarray:
     """Semantic class of SemanticKITTI labels: the low 16 bits (the high 16 hold the instance)."""
     return np.asarray(labels).astype(np.uint32, copy=False) & 0xFFFF
 
 
-def ground_truth_from_labels(semantic_labels: np.ndarray, vegetation_is_ground: bool = False
+def ground_truth_from_labels(semantic_labels: np.ndarray, vegetation_is_ground: bool = False,
+                             ontology: LabelOntology = SEMANTIC_KITTI
                              ) -> tuple[np.ndarray, np.ndarray]:
     """(truth_ground, evaluated) boolean masks from raw .label values or semantic classes."""
-    classes = semantic_classes(semantic_labels)
-    ground_classes = GROUND_CLASSES + ((VEGETATION_CLASS,) if vegetation_is_ground else ())
-    truth = np.isin(classes, ground_classes)
-    evaluated = ~np.isin(classes, IGNORED_CLASSES)
-    return truth, evaluated
+    if vegetation_is_ground and ontology.vegetation is None:
+        raise ValueError(f'vegetation_is_ground: {ontology.name} labels have no such variant')
+    ground_classes = ontology.ground + ((ontology.vegetation,) if vegetation_is_ground else ())
+    return labelled_ground_truth(semantic_labels, ground_classes, ontology.ignored)
+
+
+def labelled_ground_truth(labels: np.ndarray, ground_classes, ignored_classes
+                          ) -> tuple[np.ndarray, np.ndarray]:
+    """(truth_ground, evaluated) masks of .label values for any ontology's class lists."""
+    classes = semantic_classes(labels)
+    return np.isin(classes, ground_classes), ~np.isin(classes, ignored_classes)
 
 
 def truth_metrics(pred_ground_mask: np.ndarray, truth_ground_mask: np.ndarray,
@@ -72,15 +101,17 @@ def truth_metrics(pred_ground_mask: np.ndarray, truth_ground_mask: np.ndarray,
 
 
 def ground_metrics(pred_ground_mask: np.ndarray, semantic_labels: np.ndarray,
-                   vegetation_is_ground: bool = False) -> dict:
-    """Ground precision/recall/F1 of a prediction against SemanticKITTI labels (see module doc).
+                   vegetation_is_ground: bool = False,
+                   ontology: LabelOntology = SEMANTIC_KITTI) -> dict:
+    """Ground precision/recall/F1 of a prediction against labels of ``ontology`` (module doc).
 
     ``semantic_labels`` may be the raw uint32 .label values (instance in the high 16 bits) or the
-    semantic classes already. Unlabeled (0) and outlier (1) points are not evaluated.
+    semantic classes already. The ontology's ignored classes (SemanticKITTI: 0 unlabeled and
+    1 outlier) are not evaluated.
     """
     labels = np.asarray(semantic_labels).ravel()
     pred = np.asarray(pred_ground_mask, dtype=bool).ravel()
     if labels.shape != pred.shape:
         raise ValueError(f'the cloud has {pred.size} points but the labels have {labels.size}')
-    truth, evaluated = ground_truth_from_labels(labels, vegetation_is_ground)
+    truth, evaluated = ground_truth_from_labels(labels, vegetation_is_ground, ontology)
     return truth_metrics(pred, truth, evaluated)

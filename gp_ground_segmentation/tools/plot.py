@@ -1,12 +1,15 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Figures a person can read: one angular segment from the side, and the whole frame from above.
+"""Figures a person can read: one segment from the side, the frame and its ground from above.
 
 Left panel (side view, r vs z of angular segment K): the raw points of the segment coloured
 ground / obstacle, the ground candidates (lowest point per radial bin), the critical points
-that end line-segments, the fitted line-segments, and the GP ground model mean +/- 2 sigma.
-Right panel (bird's-eye view, x vs y): every valid point coloured ground / obstacle, or, when
+that end line-segments, the fitted line-segments, and the ground surface z +/- 2 z_std
+(``result.ground_surface`` at the segment's bin edges).
+Middle panel (bird's-eye view, x vs y): every valid point coloured ground / obstacle, or, when
 SemanticKITTI labels are given, by error: true ground found (TP), ground missed (FN), obstacle
 called ground (FP), obstacle kept (TN); the selected segment is outlined.
+Right panel (bird's-eye height map): the ground surface coloured by z, with contours of z_std
+(the posterior std of the ground height) over the supported prediction points.
 
 The intermediate arrays come from ``GroundSegmenter.segment(points, details=True).details``
 (``segmenter.SegmentationDetails``); whatever the details do not provide is left out of the
@@ -16,10 +19,13 @@ imported only here, lazily.
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
 import numpy as np
+
+FIGURE_METADATA_KEY = 'gp_ground_segmentation'  # PNG text chunk with the figure's numbers
 
 COLOURS = {'ground': '#2ca02c', 'obstacle': '#d62728', 'candidate': '#1f77b4',
            'critical': '#ff7f0e', 'line': '#9467bd', 'gp': '#111111',
@@ -62,6 +68,11 @@ def segment_view(xyz: np.ndarray, result, segment: int, num_segments: int) -> di
     view['zhat_r'], view['zhat'] = r[order][ok], zhat[order][ok]
     if result.details is not None:
         view.update(_details_view(result.details, segment))
+    surface = getattr(result, 'ground_surface', None)
+    if surface is not None:  # the published ground (with its calibration) wins over details
+        view['gp_r'], view['gp_mean'] = surface.r[segment], surface.z[segment]
+        view['gp_std'] = surface.z_std[segment]
+        view['gp_label'] = 'ground surface z'
     return view
 
 
@@ -133,18 +144,21 @@ def plot_frame(msg, out_path, *, params=None, segment=None, labels=None, title='
         raise PlotError(f'--segment {segment} is outside 0..{m - 1} (num_segments = {m})')
     result = GroundSegmenter(params).segment(xyz, details=True)
     view = segment_view(xyz, result, segment, m)
-    info = {'segment': segment, 'points': int(len(xyz))}
+    n_valid = int(np.count_nonzero(result.valid_mask))
+    n_ground = int(np.count_nonzero(result.ground_mask))
+    theta = result.hyperparameters
+    info = {'segment': segment, 'points': int(len(xyz)), 'ground_points': n_ground,
+            'sigma_f': float(theta.sigma_f), 'gain': float(theta.gain),
+            'sigma_n': float(theta.sigma_n)}
 
-    fig, (ax_side, ax_top) = plt.subplots(1, 2, figsize=(17, 7.2),
-                                          gridspec_kw={'width_ratios': [1.45, 1]})
+    fig, (ax_side, ax_top, ax_surface) = plt.subplots(
+        1, 3, figsize=(25, 7.2), gridspec_kw={'width_ratios': [1.45, 1, 1.15]})
     _draw_side(ax_side, view, segment, m)
+    _draw_surface(ax_surface, result.ground_surface, fig)
     if labels is not None:
         info['metrics'] = ground_metrics(result.ground_mask, labels, vegetation_is_ground)
     _draw_top(ax_top, xyz, result, labels, vegetation_is_ground, segment, m,
               ground_truth_from_labels)
-    theta = result.hyperparameters
-    n_valid = int(np.count_nonzero(result.valid_mask))
-    n_ground = int(np.count_nonzero(result.ground_mask))
     sub = (f'{n_valid} valid points, ground share {n_ground / max(n_valid, 1):.2f}; '
            f'theta: sigma_f {theta.sigma_f:.3g} m, a {theta.gain:.3g}, '
            f'sigma_n {theta.sigma_n:.3g} m'
@@ -158,7 +172,12 @@ def plot_frame(msg, out_path, *, params=None, segment=None, labels=None, title='
     fig.tight_layout()
     out = Path(out_path)
     out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=dpi)
+    # The figure's numbers go into the PNG too (a tEXt chunk), so a test can tell a stale
+    # figure from the code's current output.
+    metadata = ({FIGURE_METADATA_KEY: json.dumps({k: v for k, v in info.items()
+                                                  if k != 'metrics'}, sort_keys=True)}
+                if out.suffix.lower() == '.png' else None)
+    fig.savefig(out, dpi=dpi, metadata=metadata)
     plt.close(fig)
     return info
 
@@ -173,11 +192,12 @@ def _draw_side(ax, v, segment, m):
     if 'gp_r' in v:
         gr, gm = v['gp_r'], v['gp_mean']
         ok = np.isfinite(gr) & np.isfinite(gm)
-        ax.plot(gr[ok], gm[ok], color=COLOURS['gp'], lw=1.6, label='GP mean')
+        name = v.get('gp_label', 'GP mean')
+        ax.plot(gr[ok], gm[ok], color=COLOURS['gp'], lw=1.6, label=name)
         if 'gp_std' in v:
             gs = v['gp_std'][ok]
             ax.fill_between(gr[ok], gm[ok] - 2 * gs, gm[ok] + 2 * gs, color=COLOURS['gp'],
-                            alpha=0.15, lw=0, label='GP mean ± 2σ')
+                            alpha=0.15, lw=0, label=f'{name} ± 2σ')
     elif v['zhat_r'].size:
         ax.plot(v['zhat_r'], v['zhat'], color=COLOURS['gp'], lw=1.4,
                 label='predicted ground height ẑ(r)')
@@ -240,10 +260,39 @@ def _draw_top(ax, xyz, result, labels, vegetation_is_ground, segment, m, truth_f
              (far * math.cos(a0 + width), far * math.sin(a0 + width))]
     ax.fill(*zip(*wedge), color='#f5c400', alpha=0.35, lw=0.8, ec='k', ls='--', zorder=0.5,
             label=f'segment {segment} (side view)')
+    _birds_eye_axes(ax, reach)
+    ax.legend(loc='upper right', fontsize=8, markerscale=8, framealpha=0.9)
+
+
+def _birds_eye_axes(ax, reach):
+    """x/y axes of a bird's-eye panel: +-reach metres, equal aspect, grid."""
     ax.set_xlim(-reach, reach)
     ax.set_ylim(-reach, reach)
     ax.set_aspect('equal')
     ax.set_xlabel('x (m)')
     ax.set_ylabel('y (m)')
     ax.grid(True, alpha=0.3)
+
+
+def _draw_surface(ax, surface, fig, reach=40.0):
+    """Bird's-eye height map of the ground surface: z filled, z_std as labelled contours."""
+    ax.set_title('ground surface: height z (colour), z_std (contours, m)')
+    _birds_eye_axes(ax, reach)
+    if surface is None:
+        return
+    keep = surface.supported & (np.abs(surface.x) <= 1.5 * reach) & (
+        np.abs(surface.y) <= 1.5 * reach)
+    if np.count_nonzero(keep) < 3:
+        ax.text(0, 0, 'no supported ground surface', ha='center')
+        return
+    columns = (surface.x, surface.y, surface.z, surface.z_std)
+    x, y, z, std = (np.asarray(a)[keep] for a in columns)
+    lo, hi = np.percentile(z, [1, 99])
+    filled = ax.tricontourf(x, y, np.clip(z, lo, hi), levels=20, cmap='viridis')
+    fig.colorbar(filled, ax=ax, label='ground height z (m)', shrink=0.85)
+    levels = np.unique(np.round(np.percentile(std, [50, 80, 95]), 3))  # where it gets unsure
+    if levels.size and levels[-1] > 0:
+        lines = ax.tricontour(x, y, std, levels=levels, colors='white', linewidths=0.7)
+        ax.clabel(lines, fontsize=7, fmt='%.2f')
+    ax.scatter(x, y, s=0.5, c='k', alpha=0.3, lw=0, label='prediction points (bin edges)')
     ax.legend(loc='upper right', fontsize=8, markerscale=8, framealpha=0.9)

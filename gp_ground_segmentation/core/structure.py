@@ -1,0 +1,111 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Feet of vertical structures: ground-height points with a column of returns right above them.
+
+Stage ``structure`` of the segmenter (after ``label``). The height test z - z_hat <= threshold
+cannot tell the lowest returns of a wall, fence, car side, trunk or bush from the road in front
+of it: they lie a few cm above the predicted ground (median 0.07 m on the shared SemanticKITTI
+scans), well inside the threshold. What gives them away is what stands *above* them: a spinning
+LiDAR puts the next beams' returns on a vertical surface at nearly the same xy (a few cm apart),
+while on open ground the next beam lands metres further out. So a point called ground is the
+foot of a structure when some other point within a few cm horizontally stands more than
+``rise_m`` above the predicted ground and more than ``step_m`` above the point itself (the
+second condition keeps a ramp's ground where the predicted ground is a little off: neighbours a
+few cm apart on the slope differ by far less than that).
+
+"Within a few cm" is a fine polar grid, like the sensor's own geometry: azimuth cells of
+``cell_deg`` and radial cells of ``cell_m`` out to the range where the azimuth cell is ``cell_m``
+wide, growing in proportion to the range beyond (so the table stays small however far the
+points reach, and a far wall, whose beams are farther apart, gets a wider window). A point's
+neighbourhood is its cell and the 8 around it. Only points up to ``max_height_m`` above the
+predicted ground count as the column: tree crowns, car roofs and signs overhanging visible
+ground are higher than the structures whose feet are the problem, and must not erase the
+ground under them.
+
+Everything is vectorised: one ``np.maximum.at`` into a dense (azimuth x radial) table of the
+highest column point per cell and nine gathers for the candidates; no loop over points
+(about 3-5 ms on a 124k-point KITTI scan, benchmarks/RESULTS.md).
+Curbs (0.1-0.2 m faces) stay ground when ``rise_m`` is above curb height; ramps and hills rise
+less than ``rise_m`` over a few cm; sparse far ground has no point above it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ['vertical_structure_mask']
+
+
+# Cells grow with range only up to this size (m): a wider neighbourhood is no longer "right
+# above" a point. Points beyond the range where cells would be wider (115 m at 0.25 degrees)
+# keep their height-test label; it also bounds the cell table however far points lie.
+_MAX_CELL_M = 0.5
+
+
+def _polar_cells(x, y, r, cell_m: float, cell_rad: float):
+    """(azimuth cell, radial cell) of points at x, y and range r, and the number of azimuth cells.
+    """
+    n_az = max(1, int(np.ceil(2.0 * np.pi / cell_rad)))
+    dtype = x.dtype
+    az = ((np.arctan2(y, x) + dtype.type(np.pi)) * dtype.type(n_az / (2.0 * np.pi))
+          ).astype(np.int32)
+    np.minimum(az, n_az - 1, out=az)  # arctan2 may return exactly +pi
+    # cells of cell_m out to r_square, where an azimuth cell is cell_m wide, then cells growing
+    # with r: index r_square / cell_m + ln(r / r_square) / cell_rad, continuous at r_square
+    r_square = cell_m / cell_rad
+    ring = r * dtype.type(1.0 / cell_m)
+    far = np.flatnonzero(r > r_square)
+    ring[far] = dtype.type(r_square / cell_m) + np.log(r[far] * dtype.type(1.0 / r_square)) \
+        * dtype.type(1.0 / cell_rad)
+    return az, ring.astype(np.int32), n_az
+
+
+def _within(index, r, limit):
+    """The entries of ``index`` whose points lie within ``limit`` of the sensor, and their r."""
+    r = r[index]
+    near = r <= limit
+    return index[near], r[near]
+
+
+def vertical_structure_mask(x: np.ndarray, y: np.ndarray, z: np.ndarray,
+                            ground_z: np.ndarray, candidate: np.ndarray, *, cell_m: float,
+                            cell_deg: float, rise_m: float, max_height_m: float,
+                            step_m: float, r: np.ndarray | None = None) -> np.ndarray:
+    """Bool mask of the ``candidate`` points that stand at the foot of a vertical structure.
+
+    x, y, z: (P,) finite coordinates (m); ground_z: (P,) predicted ground height under each
+    point (m); candidate: (P,) bool, the points the height test called ground. cell_m: radial
+    cell size (m) near the sensor; cell_deg: azimuth cell (deg); rise_m, max_height_m, step_m: a
+    point of the neighbourhood between rise_m and max_height_m above the predicted ground (m)
+    and more than step_m above the candidate itself (m) makes the candidate a structure foot.
+    r: (P,) horizontal range sqrt(x^2 + y^2) (m) when the caller has it.
+    Returns a (P,) bool mask, a subset of ``candidate``.
+    """
+    out = np.zeros(candidate.shape, dtype=bool)
+    height = z - ground_z
+    cell_rad = np.radians(cell_deg)
+    limit = max(_MAX_CELL_M, cell_m) / cell_rad
+    if r is None:
+        r = np.hypot(x, y)
+    column, r_col = _within(np.flatnonzero((height > rise_m) & (height <= max_height_m)), r,
+                            limit)
+    cand, r_cand = _within(np.flatnonzero(candidate), r, limit)
+    if cand.size == 0 or column.size == 0:
+        return out
+    az_col, ring_col, n_az = _polar_cells(x[column], y[column], r_col, cell_m, cell_rad)
+    az_cand, ring_cand, _ = _polar_cells(x[cand], y[cand], r_cand, cell_m, cell_rad)
+    width = int(max(ring_col.max(), ring_cand.max())) + 3
+    # highest column point per cell; one spare cell on every side: row 0 repeats the last
+    # azimuth row and row n_az + 1 the first (azimuth wraps around), so each of the 9
+    # neighbours is a constant offset in the flat table
+    top = np.full((n_az + 2, width), -np.inf, dtype=z.dtype)
+    np.maximum.at(top.ravel(), (az_col + 1).astype(np.intp) * width + (ring_col + 1), z[column])
+    top[0] = top[n_az]
+    top[n_az + 1] = top[1]
+    top = top.ravel()
+    base = (az_cand + 1).astype(np.intp) * width + (ring_cand + 1)
+    highest = np.full(cand.size, -np.inf, dtype=z.dtype)
+    for offset in (-width - 1, -width, -width + 1, -1, 0, 1, width - 1, width, width + 1):
+        np.maximum(highest, top.take(base + offset), out=highest)
+    hit = highest - z[cand] > step_m
+    out[cand] = hit
+    return out

@@ -1,0 +1,209 @@
+# SPDX-License-Identifier: Apache-2.0
+"""The ground itself as an output: the GP's elevation surface of one frame, with uncertainty.
+
+The segmenter evaluates the GP posterior at the bin edges of every segment (``predict`` stage);
+:class:`GroundSurface` hands that surface out (``SegmentationResult.ground_surface``):
+
+* the prediction points: segment centre azimuth, range r, and x, y, z (posterior mean), z_std in
+  the input frame, as (M, N + 1) arrays [segment, bin edge];
+* ``supported``: False where no ground candidate backs the estimate (the segment has no
+  candidate that trained the GP), so that z there is the prior (the ground under the vehicle,
+  or the median training height) and z_std grows towards the prior std sigma_f;
+* ``height_at(x, y)``: (z, z_std) at arbitrary points, with the interpolation the labels use
+  (segment of the point's azimuth, linear along r between the two bin edges around it); NaN
+  outside the grid (beyond that segment's [r_min, r_max], or in a segment with no point).
+
+z_std is the posterior standard deviation of the *latent* ground height, sqrt(k** - k*^T A^-1 k*),
+without the sensor noise sigma_n: it says how well the ground height is known, not how far a
+single measured ground point may scatter around it (add sigma_n^2 to the variance for that).
+
+Calibration choice, the ground offset: the GP is trained on the *lowest* point of every bin,
+which lies below the ground by the lower tail of the points' scatter. That offset is not one
+number: it grows where rays hit the terrain steeply (ramps facing the sensor, hills) and where a
+segment spans a cross slope (its lowest points sit on the downhill side), about 0.5-3 cm on the
+synthetic scans and 2-3 cm on KITTI (benchmarks/RESULTS.md, "Ground surface"). The labels keep
+the GP mean (``SegmentationResult.ground_height``; their threshold was chosen with it), but the
+surface is meant to be *the* ground, so its z is the GP mean plus ``ground_offset``: at every bin
+edge, the mean height above the labels' z_hat of the points labelled ground in the two bins
+beside it (points on the ground scatter symmetrically about it), each height clipped to the
+frame's median +- 3 sigma_n so that a few obstacle points called ground cannot drag it; edges
+with no such point get the frame's median. No truth and no tuned constant is involved (3 sigma
+is the usual Gaussian outlier bound).
+
+Everything the labels do not need is computed on first access only: x, y, azimuth, and z_std when
+the threshold did not use the std (``ground_threshold_std_factor`` = 0, the default), and the
+ground offset.
+"""
+
+from __future__ import annotations
+
+from functools import cached_property
+from typing import Callable, Optional
+
+import numpy as np
+
+from .grid import segment_of
+
+# Tolerance (in bins) of height_at's range test: round-off between the grid's r and the one
+# recomputed here must not drop a point at r_min or r_max.
+_RANGE_TOLERANCE_BINS = 1e-4
+
+
+class GroundSurface:
+    """GP ground surface at the bin edges of one frame's radial grid (module docstring).
+
+    Read-only: arrays are (M, N + 1) [segment, bin edge] unless said otherwise.
+    """
+
+    def __init__(self, segment_r_min: np.ndarray, bin_width: np.ndarray,
+                 segment_has_points: np.ndarray, mean: np.ndarray,
+                 segment_supported: np.ndarray, std: Optional[np.ndarray] = None,
+                 compute_std: Optional[Callable[[], np.ndarray]] = None,
+                 compute_offset: Optional[Callable[[], np.ndarray]] = None):
+        """``segment_r_min``, ``bin_width``, ``segment_has_points``, ``segment_supported``:
+        (M,) grid geometry and flags; ``mean`` (M, N + 1) posterior mean at the bin edges.
+        ``std`` is the posterior std there, or None and ``compute_std()`` returns it when first
+        read (it costs a GP variance evaluation). ``compute_offset()`` returns the ground offset
+        (m, scalar or (M, N + 1)) when first needed; None: no offset."""
+        if std is None and compute_std is None:
+            raise ValueError('GroundSurface needs std or compute_std')
+        self._r_min = np.asarray(segment_r_min, dtype=np.float64)
+        self._width = np.asarray(bin_width, dtype=np.float64)
+        self._has_points = np.asarray(segment_has_points, dtype=bool)
+        self._mean = np.asarray(mean, dtype=np.float64)
+        self._segment_supported = np.asarray(segment_supported, dtype=bool)
+        self._std = std
+        self._compute_std = compute_std
+        self._compute_offset = compute_offset
+
+    @classmethod
+    def empty(cls, num_segments: int, num_bins: int) -> 'GroundSurface':
+        """The surface of a frame without valid points: nothing supported, height_at all NaN."""
+        m, n = int(num_segments), int(num_bins)
+        nan = np.full((m, n + 1), np.nan)
+        return cls(np.zeros(m), np.ones(m), np.zeros(m, bool), nan, np.zeros(m, bool), nan)
+
+    # --- shape -------------------------------------------------------------------------------
+    @property
+    def num_segments(self) -> int:
+        return int(self._mean.shape[0])
+
+    @property
+    def num_bins(self) -> int:
+        return int(self._mean.shape[1] - 1)
+
+    # --- the prediction points ---------------------------------------------------------------
+    @cached_property
+    def r(self) -> np.ndarray:
+        """Range of each prediction point: the bin edges of its segment (m)."""
+        k = np.arange(self.num_bins + 1)
+        return self._r_min[:, None] + k[None, :] * self._width[:, None]
+
+    @cached_property
+    def azimuth(self) -> np.ndarray:
+        """Azimuth of each prediction point: its segment's centre (rad, in (-pi, pi))."""
+        m = self.num_segments
+        centre = -np.pi + (np.arange(m) + 0.5) * (2.0 * np.pi / m)
+        return np.broadcast_to(centre[:, None], self._mean.shape)
+
+    @cached_property
+    def x(self) -> np.ndarray:
+        """x of each prediction point in the input frame (m)."""
+        return self.r * np.cos(self.azimuth)
+
+    @cached_property
+    def y(self) -> np.ndarray:
+        """y of each prediction point in the input frame (m)."""
+        return self.r * np.sin(self.azimuth)
+
+    @cached_property
+    def ground_offset(self) -> np.ndarray:
+        """Height (m) of the ground above the GP mean at each prediction point (module
+        docstring); 0 when no point was labelled ground."""
+        if self._compute_offset is None:
+            return np.zeros(self._mean.shape)
+        offset = np.broadcast_to(np.asarray(self._compute_offset(), dtype=np.float64),
+                                 self._mean.shape)
+        self._compute_offset = None
+        return np.where(np.isfinite(offset), offset, 0.0)
+
+    @cached_property
+    def z(self) -> np.ndarray:
+        """Ground height at each prediction point (m, input frame): the GP posterior mean plus
+        the ground offset."""
+        return self._mean + self.ground_offset
+
+    @property
+    def z_std(self) -> np.ndarray:
+        """Posterior std of the latent ground height (m; without sensor noise sigma_n)."""
+        if self._std is None:
+            self._std = np.asarray(self._compute_std(), dtype=np.float64)
+            self._compute_std = None
+        return self._std
+
+    @cached_property
+    def supported(self) -> np.ndarray:
+        """True where ground candidates back the estimate (their segment trained the GP)."""
+        return np.broadcast_to(self._segment_supported[:, None], self._mean.shape)
+
+    def points(self, supported_only: bool = True) -> np.ndarray:
+        """(K, 4) float32 x, y, z, z_std of the prediction points (the supported ones); points
+        whose values are not finite in float32 (absurdly far returns) are left out."""
+        keep = self.supported if supported_only else np.ones(self._mean.shape, bool)
+        columns = (self.x, self.y, self.z, self.z_std)
+        with np.errstate(over='ignore', invalid='ignore'):
+            out = np.stack([c[keep] for c in columns], axis=1).astype(np.float32)
+        return out[np.isfinite(out).all(axis=1)]
+
+    # --- anywhere ----------------------------------------------------------------------------
+    def height_at(self, x, y) -> tuple[np.ndarray, np.ndarray]:
+        """(z, z_std) of the ground at points (x, y) of the input frame (m), same shape as x.
+
+        Linear interpolation along r between the bin edges of the point's segment, exactly as
+        the labels' ground height; NaN outside the grid's range (see the module docstring).
+        """
+        x, y = np.asarray(x), np.asarray(y)
+        # the segment as the grid found it: from the points' own values (float32 input stays
+        # float32 values), decided in float64 by segment_of
+        angle_dtype = np.result_type(x.dtype, y.dtype, np.float32)
+        shape = np.broadcast_shapes(x.shape, y.shape)
+        x, y = (np.broadcast_to(v, shape).ravel().astype(angle_dtype) for v in (x, y))
+        finite = np.isfinite(x) & np.isfinite(y)
+        seg = segment_of(np.where(finite, x, 0), np.where(finite, y, 0), self.num_segments)
+        x, y = x.astype(np.float64), y.astype(np.float64)
+        z_out = np.full(x.shape, np.nan)
+        std_out = np.full(x.shape, np.nan)
+        position = (np.hypot(x, y) - self._r_min[seg]) / self._width[seg]
+        n = self.num_bins
+        inside = (finite & self._has_points[seg] & (position >= -_RANGE_TOLERANCE_BINS)
+                  & (position <= n + _RANGE_TOLERANCE_BINS))
+        seg, position = seg[inside], np.clip(position[inside], 0.0, n)
+        bins = np.minimum(position.astype(np.intp), n - 1)
+        frac = position - bins
+        for values, out in ((self.z, z_out), (self.z_std, std_out)):
+            low = values[seg, bins]
+            out[inside] = low + frac * (values[seg, bins + 1] - low)
+        return z_out.reshape(shape), std_out.reshape(shape)
+
+
+def ground_offsets(residual, segment, bin_index, num_segments: int, num_bins: int,
+                   noise_std: float) -> np.ndarray:
+    """(M, N + 1) ground offset at the bin edges (module docstring) from the points labelled
+    ground: ``residual`` z - z_hat (m), their ``segment`` and ``bin_index`` in the grid;
+    ``noise_std`` sigma_n (m) bounds each residual to the frame's median +- 3 sigma_n."""
+    residual = np.asarray(residual, dtype=np.float64)
+    m, n = int(num_segments), int(num_bins)
+    if residual.size == 0:
+        return np.zeros((m, n + 1))
+    centre = float(np.median(residual))
+    band = 3.0 * float(noise_std)
+    clipped = np.clip(residual, centre - band, centre + band)
+    key = np.asarray(segment, np.intp) * n + np.asarray(bin_index, np.intp)
+    sums = np.bincount(key, weights=clipped, minlength=m * n).reshape(m, n)
+    counts = np.bincount(key, minlength=m * n).reshape(m, n).astype(np.float64)
+    edge_sums, edge_counts = np.zeros((m, n + 1)), np.zeros((m, n + 1))
+    for values, edge in ((sums, edge_sums), (counts, edge_counts)):
+        edge[:, :-1] += values  # edge k is the inner edge of bin k ...
+        edge[:, 1:] += values  # ... and the outer edge of bin k - 1
+    with np.errstate(invalid='ignore', divide='ignore'):
+        return np.where(edge_counts > 0, edge_sums / edge_counts, centre)

@@ -1,0 +1,303 @@
+# SPDX-License-Identifier: Apache-2.0
+"""``gp-ground-seg play`` and ``gp-ground-seg hz``: a live ROS 2 graph without the ros2 CLI.
+
+A pip-only user has no ``ros2 bag play`` and no ``ros2 topic hz``. ``play`` publishes the
+PointCloud2 frames of a bag (or of .bin/.pcd files, stamped i * 0.1 s) with their recorded
+timing and sensor-data QoS, so that the node can be run live on the shipped sample; ``hz``
+subscribes to topics and prints their rates (and, per message type, a one-line summary).
+
+    gp-ground-seg play data/kitti00_sample --loop
+    gp-ground-seg hz /ground /obstacles /diagnostics --duration 10
+
+Both end on Ctrl-C (or SIGTERM) with exit status 0 and a closing summary line.
+"""
+
+from __future__ import annotations
+
+import copy
+import importlib
+import sys
+import time
+from collections import deque
+
+from ..ros.shutdown import QuietShutdown
+
+CLOCK_PERIOD_S = 0.025  # /clock at 40 Hz while waiting between frames (ros2 bag play's default)
+
+
+def _ros_context():
+    """A private rclpy context without rclpy's signal handlers: with ``QuietShutdown`` the first
+    Ctrl-C or SIGTERM raises KeyboardInterrupt wherever the loop is (sleeping included) and
+    further ones are ignored."""
+    import rclpy
+    from rclpy.signals import SignalHandlerOptions
+    context = rclpy.Context()
+    rclpy.init(args=[], context=context, signal_handler_options=SignalHandlerOptions.NO)
+    return context
+
+
+def _to_time_msg(ns: int):
+    from builtin_interfaces.msg import Time
+    return Time(sec=int(ns // 1_000_000_000), nanosec=int(ns % 1_000_000_000))
+
+
+# ---------------------------------------------------------------------------------------------
+# play
+# ---------------------------------------------------------------------------------------------
+
+class _Player:
+    """Publishes frames at their recorded pace (bag time / rate), optionally /clock."""
+
+    def __init__(self, node, topic: str, rate: float, restamp: bool, clock: bool):
+        from rclpy.qos import qos_profile_sensor_data
+        from sensor_msgs.msg import PointCloud2
+        self.node = node
+        self.rate = rate
+        self.restamp = restamp
+        # copy: rclpy may write QoS overrides into the profile it is given
+        self.pub = node.create_publisher(PointCloud2, topic, copy.copy(qos_profile_sensor_data))
+        self.clock_pub = None
+        if clock:
+            from rosgraph_msgs.msg import Clock
+            self.clock_pub = node.create_publisher(Clock, '/clock', 10)
+        self.offset_ns = 0  # added to bag time on every loop pass, so time never goes back
+        self.published = 0
+        self._anchor = None  # (wall monotonic s, bag time ns) of the first frame
+
+    def sim_time_ns(self) -> int:
+        wall0, bag0 = self._anchor
+        return bag0 + int((time.monotonic() - wall0) * self.rate * 1e9)
+
+    def _publish_clock(self) -> None:
+        if self.clock_pub is not None and self._anchor is not None:
+            from rosgraph_msgs.msg import Clock
+            self.clock_pub.publish(Clock(clock=_to_time_msg(self.sim_time_ns())))
+
+    def wait_until(self, bag_ns: int) -> None:
+        """Sleep until the wall time of bag time ``bag_ns``, publishing /clock meanwhile."""
+        if self._anchor is None:
+            self._anchor = (time.monotonic(), bag_ns)
+        wall0, bag0 = self._anchor
+        due = wall0 + (bag_ns - bag0) / 1e9 / self.rate
+        while True:
+            self._publish_clock()
+            left = due - time.monotonic()
+            if left <= 0:
+                return
+            time.sleep(min(left, CLOCK_PERIOD_S) if self.clock_pub is not None else left)
+
+    def publish(self, msg, bag_ns: int) -> None:
+        if self.restamp:
+            msg.header.stamp = (_to_time_msg(bag_ns) if self.clock_pub is not None
+                                else self.node.get_clock().now().to_msg())
+        self.pub.publish(msg)
+        self.published += 1
+
+
+def cmd_play(args) -> int:
+    from .bag import SYNTHETIC_PERIOD_NS, FrameSource
+    from .cli import CliError
+
+    if not args.rate > 0:
+        raise CliError('--rate must be > 0')
+    source = FrameSource(args.inputs, args.topic, args.max_frames, args.frame_id)
+    with source:
+        pass  # open once up front: bad input is reported before the ROS graph starts
+    prog = 'gp-ground-seg play'
+    if source.note:
+        print(f'{prog}: note: {source.note}', file=sys.stderr)
+    quiet = QuietShutdown()
+    quiet.install()
+    context = _ros_context()
+    node = player = None
+    t0 = time.monotonic()
+    passes = 0
+    try:
+        import rclpy
+        node = rclpy.create_node('gp_ground_seg_play', context=context)
+        player = _Player(node, source.topic, args.rate, args.restamp, args.clock)
+        deadline = time.monotonic() + args.wait_for_subscriber
+        while player.pub.get_subscription_count() == 0 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        subs = player.pub.get_subscription_count()
+        print(f'{prog}: publishing {source.count} frame(s) of {source.description} on '
+              f'{source.topic} (rate x{args.rate:g}{", loop" if args.loop else ""}'
+              f'{", restamped" if args.restamp else ""}{", /clock" if args.clock else ""}; '
+              f'{subs} subscriber(s))', file=sys.stderr)
+        period_ns = 0
+        while True:
+            first_ns = last_ns = None
+            with FrameSource(args.inputs, args.topic, args.max_frames, args.frame_id) as src:
+                for frame in src:
+                    bag_ns = frame.timestamp_ns + player.offset_ns
+                    if first_ns is None:
+                        first_ns = bag_ns
+                    elif last_ns is not None:
+                        period_ns = bag_ns - last_ns
+                    player.wait_until(bag_ns)
+                    player.publish(frame.msg, bag_ns)
+                    last_ns = bag_ns
+            passes += 1
+            if not args.loop:
+                break
+            # next pass starts one frame period after this one ended: time keeps increasing
+            player.offset_ns += (last_ns - first_ns) + (period_ns or SYNTHETIC_PERIOD_NS)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        quiet.ignore_signals()
+        if node is not None:
+            node.destroy_node()
+        import rclpy
+        rclpy.try_shutdown(context=context)
+    wall = time.monotonic() - t0
+    published = player.published if player is not None else 0
+    print(f'{prog}: published {published} frame(s) in {wall:.1f} s ({passes} full pass(es))',
+          file=sys.stderr)
+    return 0
+
+
+# ---------------------------------------------------------------------------------------------
+# hz
+# ---------------------------------------------------------------------------------------------
+
+def _message_class(type_name: str):
+    """'sensor_msgs/msg/PointCloud2' -> the rclpy class."""
+    package, _, name = type_name.split('/')
+    return getattr(importlib.import_module(f'{package}.msg'), name)
+
+
+def _summary(msg) -> str:
+    """A short description of one message of the common types (an 'echo' in one line)."""
+    if hasattr(msg, 'point_step') and hasattr(msg, 'fields'):
+        return f"{int(msg.width) * int(msg.height)} points, frame_id '{msg.header.frame_id}'"
+    status = getattr(msg, 'status', None)
+    if isinstance(status, (list, tuple)) and status and hasattr(status[0], 'level'):
+        names = {0: 'OK', 1: 'WARN', 2: 'ERROR', 3: 'STALE'}
+        return '; '.join(f"{names.get(ord(s.level) if isinstance(s.level, bytes) else s.level)}"
+                         f' {s.message}' for s in status)
+    return ''
+
+
+class _TopicStats:
+    def __init__(self, window: int):
+        self.times = deque(maxlen=window + 1)
+        self.count = 0
+        self.last = ''
+
+    def add(self, msg) -> None:
+        self.times.append(time.monotonic())
+        self.count += 1
+        self.last = _summary(msg)
+
+    def line(self, topic: str) -> str:
+        t = list(self.times)
+        if len(t) < 2:
+            return f'{topic}: {self.count} message(s), rate n/a  {self.last}'.rstrip()
+        periods = [b - a for a, b in zip(t, t[1:])]
+        rate = (len(t) - 1) / (t[-1] - t[0]) if t[-1] > t[0] else float('nan')
+        return (f'{topic}: {rate:.2f} Hz (min {min(periods):.3f} s, max {max(periods):.3f} s, '
+                f'window {len(periods)}), {self.count} message(s)  {self.last}').rstrip()
+
+
+def cmd_hz(args) -> int:
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from .cli import CliError
+    from .bag import normalize_topic
+
+    topics = [normalize_topic(t) for t in args.topics]
+    quiet = QuietShutdown()
+    quiet.install()
+    context = _ros_context()
+    node = None
+    stats = {t: _TopicStats(args.window) for t in topics}
+    prog = 'gp-ground-seg hz'
+    try:
+        import rclpy
+        from rclpy.executors import SingleThreadedExecutor
+        node = rclpy.create_node('gp_ground_seg_hz', context=context)
+        executor = SingleThreadedExecutor(context=context)
+        executor.add_node(node)
+        pending = set(topics)
+        start = time.monotonic()
+        end = start + args.duration if args.duration else None
+        next_print = start + args.period
+        while end is None or time.monotonic() < end:
+            if pending:
+                known = dict(node.get_topic_names_and_types())
+                for topic in sorted(pending):
+                    if topic in known:
+                        msg_type = _message_class(known[topic][0])
+                        # best effort matches reliable and best-effort publishers alike
+                        node.create_subscription(
+                            msg_type, topic, stats[topic].add,
+                            QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT))
+                        pending.discard(topic)
+            executor.spin_once(timeout_sec=0.05)
+            if time.monotonic() >= next_print:
+                next_print += args.period
+                for topic in topics:
+                    text = (f'{topic}: not published yet' if topic in pending
+                            else stats[topic].line(topic))
+                    print(text, flush=True)
+    except KeyboardInterrupt:
+        pass
+    except (ValueError, ImportError, AttributeError) as err:
+        raise CliError(f'cannot subscribe: {err}') from None
+    finally:
+        quiet.ignore_signals()
+        if node is not None:
+            node.destroy_node()
+        import rclpy
+        rclpy.try_shutdown(context=context)
+    print(f'{prog}: summary', file=sys.stderr)
+    for topic in topics:
+        print(stats[topic].line(topic), flush=True)
+    return 0
+
+
+# ---------------------------------------------------------------------------------------------
+# argument parsing (registered by cli.build_parser)
+# ---------------------------------------------------------------------------------------------
+
+def register(sub) -> None:
+    """Add the ``play`` and ``hz`` subcommands to the gp-ground-seg subparsers ``sub``."""
+    from .cli import add_frame_id_option
+    p = sub.add_parser('play', help='publish a bag\'s clouds live (like ros2 bag play)',
+                       description='Publish the PointCloud2 frames of a bag (or of .bin/.pcd '
+                       'files, 10 Hz) with their recorded timing and sensor-data QoS (best '
+                       'effort, keep last 5), e.g. to run the node live on the shipped sample. '
+                       'Ctrl-C stops it.')
+    p.add_argument('inputs', nargs='+', metavar='IN',
+                   help='bag, point files or a directory of them')
+    p.add_argument('--topic', default=None,
+                   help='PointCloud2 topic to read and to publish on (default /velodyne_points; '
+                   'if absent and the bag has exactly one PointCloud2 topic, that one)')
+    p.add_argument('--rate', type=float, default=1.0, metavar='X',
+                   help='play X times faster than recorded (default 1)')
+    p.add_argument('--loop', action='store_true', help='start again at the end, until Ctrl-C')
+    p.add_argument('--restamp', action='store_true',
+                   help='set header.stamp to the time of publishing (the /clock time with '
+                   '--clock), e.g. for TF lookups on a live robot')
+    p.add_argument('--clock', action='store_true',
+                   help='publish /clock from the bag time (for nodes with use_sim_time)')
+    add_frame_id_option(p)
+    p.add_argument('--max-frames', type=int, metavar='K', help='play only the first K frames')
+    p.add_argument('--wait-for-subscriber', type=float, default=5.0, metavar='S',
+                   help='wait up to S seconds for a subscriber before the first frame '
+                   '(default 5; 0: start at once)')
+    p.set_defaults(func=cmd_play)
+
+    p = sub.add_parser('hz', help='print the rates of topics (like ros2 topic hz)',
+                       description='Subscribe (best effort) to TOPICs and print each one\'s rate '
+                       'every PERIOD seconds, with a one-line summary of the last message '
+                       '(points and frame_id of a PointCloud2, level and message of '
+                       'diagnostics). Ctrl-C or --duration ends it with a summary.')
+    p.add_argument('topics', nargs='+', metavar='TOPIC')
+    p.add_argument('--window', type=int, default=50, metavar='N',
+                   help='rate over the last N messages (default 50)')
+    p.add_argument('--period', type=float, default=1.0, metavar='S',
+                   help='print every S seconds (default 1)')
+    p.add_argument('--duration', type=float, default=None, metavar='S',
+                   help='stop after S seconds')
+    p.set_defaults(func=cmd_hz)

@@ -1,0 +1,174 @@
+# SPDX-License-Identifier: Apache-2.0
+"""The node as people start it: console script under signals, --help, parameter files (also in a
+namespace), QoS overrides per endpoint, and the launch file."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+import yaml
+
+from conftest import REPO
+
+LAUNCH_FILE = REPO / 'launch' / 'ground_segmentation.launch.py'
+PARAMS_YAML = REPO / 'config' / 'params.yaml'
+
+
+def _start(args, **kwargs):
+    env = dict(os.environ, PYTHONUNBUFFERED='1')
+    env['PYTHONPATH'] = os.pathsep.join([str(REPO), env.get('PYTHONPATH', '')])
+    return subprocess.Popen([sys.executable, '-m', 'gp_ground_segmentation.ros.node', *args],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            env=env, **kwargs)
+
+
+def _run(args, timeout=60):
+    proc = _start(args)
+    out, _ = proc.communicate(timeout=timeout)
+    return proc.returncode, out
+
+
+def _wait_listening(proc):
+    lines = []
+    for line in proc.stdout:
+        lines.append(line)
+        if 'listening on' in line:
+            return lines
+    raise AssertionError(f'node did not start: {"".join(lines)}')
+
+
+@pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM])
+def test_two_signals_to_the_process_group_exit_0_quietly(sig):
+    # A terminal's Ctrl-C goes to the whole process group, and ros2 launch forwards another.
+    proc = _start(['--ros-args', '-r', 'points:=/gp_test_points'], start_new_session=True)
+    try:
+        _wait_listening(proc)
+        os.killpg(proc.pid, sig)
+        os.killpg(proc.pid, sig)
+        out, _ = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 0, out
+    assert 'Traceback' not in out and 'KeyboardInterrupt' not in out, out
+
+
+def test_signals_during_shutdown_are_ignored():
+    # Signals keep coming while the node is being destroyed (worker joined): still exit 0.
+    proc = _start(['--ros-args', '-r', 'points:=/gp_test_points'], start_new_session=True)
+    try:
+        _wait_listening(proc)
+        for _ in range(5):
+            os.killpg(proc.pid, signal.SIGINT)
+            time.sleep(0.02)
+        out, _ = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 0 and 'Traceback' not in out, out
+
+
+def test_help_prints_usage_and_does_not_start():
+    code, out = _run(['--help'])
+    assert code == 0
+    assert out.startswith('usage: ground_segmentation_node') and '--ros-args' in out
+    assert 'listening on' not in out
+
+
+@pytest.mark.parametrize('make_path', [lambda tmp: tmp / 'missing.yaml', lambda tmp: tmp],
+                         ids=['missing', 'directory'])
+def test_unreadable_params_file_is_one_fatal_line(tmp_path, make_path):
+    path = make_path(tmp_path)
+    code, out = _run(['--ros-args', '--params-file', str(path)])
+    assert code == 1, out
+    assert 'Traceback' not in out and 'RCLError' not in out, out
+    lines = out.strip().splitlines()
+    assert len(lines) == 1 and 'FATAL' in lines[0] and str(path) in lines[0], out
+
+
+def _shipped_params_with(tmp_path, **changes):
+    doc = yaml.safe_load(PARAMS_YAML.read_text())
+    (section,) = doc
+    doc[section]['ros__parameters'].update(changes)
+    path = tmp_path / 'params.yaml'
+    path.write_text(yaml.safe_dump(doc))
+    return path
+
+
+def test_namespaced_node_reads_the_shipped_params_file(tmp_path):
+    # A bad value in the shipped file's layout must stop a node in a namespace too ...
+    bad = _shipped_params_with(tmp_path, num_bins=2)
+    code, out = _run(['--ros-args', '-r', '__ns:=/seg', '--params-file', str(bad)])
+    assert code == 1 and 'num_bins' in out and 'Traceback' not in out, out
+    # ... and a good one is applied there.
+    import rclpy
+    from gp_ground_segmentation.ros.node import GroundSegmentationNode
+    good = _shipped_params_with(tmp_path, ground_threshold_m=0.27)
+    context = rclpy.Context()
+    rclpy.init(args=['--ros-args', '--params-file', str(good)], context=context)
+    try:
+        node = GroundSegmentationNode(context=context, namespace='/seg')
+        assert node.get_fully_qualified_name() == '/seg/ground_segmentation'
+        assert node.declared_params.ground_threshold_m == 0.27
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=context)
+
+
+def test_params_file_without_a_section_for_the_node_is_refused(tmp_path):
+    # rcl ignores such a file silently; the node says so and stops.
+    path = tmp_path / 'root_only.yaml'
+    path.write_text('ground_segmentation:\n  ros__parameters:\n    ground_threshold_m: 0.25\n')
+    code, out = _run(['--ros-args', '-r', '__ns:=/seg', '--params-file', str(path)])
+    assert code == 1 and 'Traceback' not in out, out
+    fatal = [ln for ln in out.splitlines() if 'FATAL' in ln]
+    assert len(fatal) == 1 and "'/seg/ground_segmentation'" in fatal[0] \
+        and str(path) in fatal[0], out
+
+
+def test_qos_override_of_one_output_leaves_the_others_alone():
+    import rclpy
+    from rclpy.qos import qos_profile_sensor_data
+    from gp_ground_segmentation.ros.node import OUTPUT_QOS, GroundSegmentationNode
+    context = rclpy.Context()
+    rclpy.init(args=['--ros-args', '-p', 'qos_overrides./ground.publisher.depth:=7',
+                     '-p', 'qos_overrides./points.subscription.depth:=3'], context=context)
+    try:
+        node = GroundSegmentationNode(context=context)
+
+        pubs = {p.topic_name: p.qos_profile for p in node.publishers}
+        subs = {s.topic_name: s.qos_profile for s in node.subscriptions}
+        assert pubs['/ground'].depth == 7
+        assert pubs['/obstacles'].depth == 1
+        assert subs['/points'].depth == 3
+        assert OUTPUT_QOS.depth == 1 and qos_profile_sensor_data.depth == 5
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=context)
+
+
+def test_launch_file_is_installed_and_valid_python():
+    compile(LAUNCH_FILE.read_text(), str(LAUNCH_FILE), 'exec')
+    setup = (REPO / 'setup.py').read_text()
+    assert "'share/' + package_name + '/launch'" in setup and '*.launch.py' in setup
+
+
+def test_launch_description():
+    pytest.importorskip('launch_ros', reason='launch_ros is not installable from PyPI here; '
+                        'this runs in a ROS 2 installation')
+    import importlib.util
+    from launch.actions import DeclareLaunchArgument
+    from launch_ros.actions import Node
+    spec = importlib.util.spec_from_file_location('gs_launch', LAUNCH_FILE)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    description = module.generate_launch_description()
+    names = {e.name for e in description.entities if isinstance(e, DeclareLaunchArgument)}
+    assert {'points', 'params_file', 'namespace', 'use_sim_time', 'rviz'} <= names
+    nodes = [e for e in description.entities if isinstance(e, Node)]
+    assert len(nodes) == 2  # the segmentation node and the conditional RViz

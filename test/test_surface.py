@@ -1,0 +1,152 @@
+# SPDX-License-Identifier: Apache-2.0
+"""GroundSurface (core/surface.py): the GP ground surface, height_at, height_above_ground."""
+
+import numpy as np
+import pytest
+
+from gp_ground_segmentation import GroundSegmenter, SegmenterParams
+from scenes import synthetic
+
+
+@pytest.fixture(scope='module')
+def ramp():
+    """A sloped synthetic scan (exact terrain) and its result on the second (warm) frame."""
+    scan = synthetic.scan_scene('ramp15')
+    points = np.ascontiguousarray(scan.points)
+    seg = GroundSegmenter(SegmenterParams())
+    seg.segment(points)
+    return scan, points, seg.segment(points)
+
+
+def test_height_at_points_is_the_labels_ground_height(ramp):
+    _, points, result = ramp
+    z_hat, z_std = result.ground_surface.height_at(points[:, 0], points[:, 1])
+    assert np.isfinite(z_hat).all() and np.isfinite(z_std).all()
+    surface = result.ground_surface
+    offset, _ = _interpolated(surface, surface.ground_offset, points)
+    # ramp15: the lowest points lie ~1.5 cm under the exact terrain, more on the ramp
+    low, median, high = np.percentile(offset, [5, 50, 95])
+    assert 0.005 < median < 0.05 and -0.05 < low and high < 0.1
+    np.testing.assert_allclose(z_hat, result.ground_height + offset, atol=1e-4)
+
+
+def _interpolated(surface, values, points):
+    """``values`` (M, N + 1) at the points with height_at's interpolation (z_std unused)."""
+    from gp_ground_segmentation.core.surface import GroundSurface
+    other = GroundSurface(surface.r[:, 0], surface.r[:, 1] - surface.r[:, 0],
+                          np.ones(surface.num_segments, bool), values, surface.supported[:, 0],
+                          np.zeros(values.shape))
+    return other.height_at(points[:, 0], points[:, 1])
+
+
+def test_ground_offsets_bins_to_edges_clipped_and_filled():
+    from gp_ground_segmentation.core.surface import ground_offsets
+    # segment 0: bin 0 holds 0.01, 0.03 and an obstacle point at 5 m (clipped to 0.02 + 0.3);
+    # bin 1 is empty; segment 1 has no ground point at all
+    residual = np.array([0.01, 0.03, 5.0, 0.02, 0.02])
+    segment = np.array([0, 0, 0, 0, 0])
+    bins = np.array([0, 0, 0, 2, 2])
+    out = ground_offsets(residual, segment, bins, 2, 3, noise_std=0.1)
+    median = 0.02
+    bin0 = (0.01 + 0.03 + median + 0.3) / 3
+    np.testing.assert_allclose(out[0], [bin0, bin0, 0.02, 0.02])
+    np.testing.assert_allclose(out[1], median)
+
+
+def test_height_at_is_vectorised_and_nan_outside_the_grid(ramp):
+    _, _, result = ramp
+    surface = result.ground_surface
+    x = np.array([[5.0, 1e4], [np.nan, -7.0]])
+    y = np.array([[1.0, 0.0], [0.0, 2.0]])
+    z, std = surface.height_at(x, y)
+    assert z.shape == std.shape == (2, 2)
+    assert np.isnan(z[0, 1]) and np.isnan(z[1, 0]) and np.isnan(std[0, 1])
+    assert np.isfinite(z[0, 0]) and np.isfinite(z[1, 1])
+    # at the prediction points themselves height_at returns the surface
+    z_at, std_at = surface.height_at(surface.x, surface.y)
+    ok = np.isfinite(z_at)
+    assert ok.mean() > 0.95
+    np.testing.assert_allclose(z_at[ok], surface.z[ok], atol=1e-6)
+    np.testing.assert_allclose(std_at[ok], surface.z_std[ok], atol=1e-6)
+
+
+def test_surface_points_follow_the_exact_terrain(ramp):
+    scan, _, result = ramp
+    s = result.ground_surface
+    assert s.x.shape == s.y.shape == s.z.shape == s.z_std.shape == s.supported.shape
+    assert s.supported.all()  # a full sweep over open terrain: every segment has candidates
+    truth = scan.terrain_z(s.x, s.y)
+    assert np.median(np.abs(s.z - truth)) < 0.05  # ramp15, measured 0.017 m at the points
+    np.testing.assert_allclose(np.hypot(s.x, s.y), s.r, atol=1e-9)
+    points = s.points()
+    assert points.dtype == np.float32 and points.shape == (s.z.size, 4)
+
+
+def test_z_std_is_lazy_and_equals_the_details_std(ramp):
+    _, points, _ = ramp
+    params = SegmenterParams()
+    assert params.ground_threshold_std_factor == 0  # the default does not need the std
+    plain = GroundSegmenter(params).segment(points)
+    detailed = GroundSegmenter(params).segment(points, details=True)
+    assert plain.ground_surface._std is None  # not computed by segment()
+    np.testing.assert_allclose(plain.ground_surface.z_std, detailed.details.ground_std,
+                               rtol=1e-9, atol=1e-12)
+    theta = plain.hyperparameters
+    assert (plain.ground_surface.z_std <= theta.sigma_f + 1e-12).all()
+    assert plain.ground_surface._std is not None
+
+
+def test_unsupported_segments_and_half_plane_cloud(ramp):
+    _, points, _ = ramp
+    front = points[points[:, 0] > 2.0]
+    result = GroundSegmenter(SegmenterParams()).segment(front)
+    s = result.ground_surface
+    azimuth_deg = np.degrees(s.azimuth[:, 0])
+    assert not s.supported[np.abs(azimuth_deg) > 120].any()
+    assert s.supported[np.abs(azimuth_deg) < 30].all()
+    z, std = s.height_at(np.array([-10.0, 10.0]), np.array([0.5, 0.5]))
+    assert np.isnan(z[0]) and np.isfinite(z[1])
+    # segments without points sit at the prior: std sigma_f
+    empty = ~s.supported[:, 0]
+    np.testing.assert_allclose(s.z_std[empty], result.hyperparameters.sigma_f)
+    assert len(s.points()) == int(s.supported.sum())
+
+
+def test_height_above_ground_with_invalid_points(ramp):
+    _, points, _ = ramp
+    pts = points.copy()
+    pts[::50, 2] = np.nan
+    pts[1::50, :3] = 0.0
+    result = GroundSegmenter(SegmenterParams()).segment(pts)
+    hag = result.height_above_ground
+    assert hag.dtype == np.float64 and hag.shape == (len(pts),)
+    assert np.isnan(hag[~result.valid_mask]).all()
+    valid = result.valid_mask
+    np.testing.assert_allclose(hag[valid], pts[valid, 2] - result.ground_height[valid], atol=1e-6)
+    assert np.median(hag[result.ground_mask]) < 0.1 < np.median(hag[result.obstacle_mask])
+
+
+def test_empty_frame_has_an_empty_surface():
+    result = GroundSegmenter(SegmenterParams()).segment(np.full((4, 3), np.nan))
+    s = result.ground_surface
+    assert not s.supported.any() and s.points().shape == (0, 4)
+    assert np.isnan(s.height_at(1.0, 1.0)[0])
+    assert np.isnan(result.height_above_ground).all()
+
+
+def test_absurdly_far_points_leave_the_published_points_finite(ramp):
+    _, points, _ = ramp
+    far = np.r_[points[:, :3].astype(np.float64), np.full((20, 3), 1e30),
+                np.full((20, 3), -1e30)]
+    result = GroundSegmenter(SegmenterParams()).segment(far)
+    out = result.ground_surface.points()
+    assert len(out) > 1000 and np.isfinite(out).all()
+
+
+def test_plot_side_view_draws_the_surface(ramp):
+    from gp_ground_segmentation.tools.plot import segment_view
+    _, points, result = ramp
+    view = segment_view(points[:, :3], result, 60, result.ground_surface.num_segments)
+    s = result.ground_surface
+    np.testing.assert_array_equal(view['gp_mean'], s.z[60])
+    np.testing.assert_array_equal(view['gp_std'], s.z_std[60])

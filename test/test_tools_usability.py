@@ -1,0 +1,94 @@
+# SPDX-License-Identifier: Apache-2.0
+"""gp-ground-seg rough edges found by a new user: raw-packet bags, topic names without a slash,
+--frame-id / --output-prefix of replay, plot --force, eval of an empty file, replay warm-up."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import DATA, REPO
+from gp_ground_segmentation.tools.cli import main
+
+SAMPLE = REPO / 'data' / 'kitti00_sample'
+PACKETS_BAG = DATA / 'nebula_vlp16_bag' / '1673400471837873222'
+
+
+def _topics(bag):
+    from rosbags.highlevel import AnyReader
+    with AnyReader([Path(bag)]) as reader:
+        return {c.topic: c.msgtype for c in reader.connections}
+
+
+def _first_message(bag, topic):
+    from rclpy.serialization import deserialize_message
+    from rosbags.highlevel import AnyReader
+    from sensor_msgs.msg import PointCloud2
+    with AnyReader([Path(bag)]) as reader:
+        conns = [c for c in reader.connections if c.topic == topic]
+        for _, _, raw in reader.messages(connections=conns):
+            return deserialize_message(bytes(raw), PointCloud2)
+
+
+@pytest.mark.parametrize('extra', [[], ['--topic', '/velodyne_packets']])
+def test_raw_packet_bag_names_its_type(tmp_path, capsys, extra):
+    if not PACKETS_BAG.is_dir():
+        pytest.skip(f'real data not found: {PACKETS_BAG}')
+    assert main(['replay', str(PACKETS_BAG), str(tmp_path / 'out'), *extra]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1
+    assert 'velodyne_msgs/msg/VelodyneScan' in err and 'PointCloud2' in err
+    assert 'corrupt' not in err and 'default_typestore' not in err
+
+
+def test_topic_without_leading_slash(tmp_path):
+    out = tmp_path / 'out'
+    assert main(['replay', str(SAMPLE), str(out), '--topic', 'velodyne_points',
+                 '--max-frames', '1']) == 0
+    assert '/velodyne_points/ground' in _topics(out)
+
+
+def test_replay_output_prefix_and_frame_id(tmp_path):
+    from gp_ground_segmentation.tools.io import write_pcd
+    rng = np.random.default_rng(0)
+    xyz = np.c_[rng.uniform(-20, 20, (3000, 2)), rng.normal(-1.7, 0.02, 3000)].astype('<f4')
+    pcd = tmp_path / 'scan.pcd'
+    write_pcd(pcd, xyz.view([('x', '<f4'), ('y', '<f4'), ('z', '<f4')]).reshape(-1))
+    out = tmp_path / 'out'
+    assert main(['replay', str(pcd), str(out), '--frame-id', 'base_lidar',
+                 '--output-prefix', '']) == 0
+    assert set(_topics(out)) == {'/ground', '/obstacles', '/diagnostics'}
+    assert _first_message(out, '/ground').header.frame_id == 'base_lidar'
+
+
+def test_plot_does_not_overwrite_without_force(tmp_path, capsys):
+    pytest.importorskip('matplotlib')
+    fig = tmp_path / 'fig.png'
+    fig.write_bytes(b'keep me')
+    assert main(['plot', f'{SAMPLE}:0', '--out', str(fig)]) == 2
+    err = capsys.readouterr().err
+    assert '--force' in err and len(err.strip().splitlines()) == 1
+    assert fig.read_bytes() == b'keep me'
+    assert main(['plot', f'{SAMPLE}:0', '--out', str(fig), '--force']) == 0
+    assert fig.read_bytes()[:4] == b'\x89PNG'
+
+
+def test_eval_of_an_empty_scan_is_an_error(tmp_path, capsys):
+    empty = tmp_path / 'empty.bin'
+    empty.write_bytes(b'')
+    assert main(['eval', str(empty)]) == 2
+    err = capsys.readouterr().err
+    assert 'no valid point' in err and str(empty) in err
+
+
+def test_replay_loads_the_compiled_kernel_before_the_first_frame(tmp_path, monkeypatch):
+    import gp_ground_segmentation.core.gp_compiled as gp_compiled
+    import gp_ground_segmentation.ros.pipeline as pipeline
+    calls = []
+    real_warm_up, real_process = gp_compiled.warm_up, pipeline.process_cloud
+    monkeypatch.setattr(gp_compiled, 'warm_up',
+                        lambda: (calls.append('warm_up'), real_warm_up())[1])
+    monkeypatch.setattr(pipeline, 'process_cloud',
+                        lambda *a: (calls.append('frame'), real_process(*a))[1])
+    assert main(['replay', str(SAMPLE), str(tmp_path / 'out'), '--max-frames', '2']) == 0
+    assert calls == ['warm_up', 'frame', 'frame']

@@ -57,7 +57,7 @@ def test_replay_output_prefix_and_frame_id(tmp_path):
     out = tmp_path / 'out'
     assert main(['replay', str(pcd), str(out), '--frame-id', 'base_lidar',
                  '--output-prefix', '']) == 0
-    assert set(_topics(out)) == {'/ground', '/obstacles', '/diagnostics'}
+    assert set(_topics(out)) == {'/ground', '/obstacles', '/ground_surface', '/diagnostics'}
     assert _first_message(out, '/ground').header.frame_id == 'base_lidar'
 
 
@@ -89,6 +89,6 @@ def test_replay_loads_the_compiled_kernel_before_the_first_frame(tmp_path, monke
     monkeypatch.setattr(gp_compiled, 'warm_up',
                         lambda: (calls.append('warm_up'), real_warm_up())[1])
     monkeypatch.setattr(pipeline, 'process_cloud',
-                        lambda *a: (calls.append('frame'), real_process(*a))[1])
+                        lambda *a, **kw: (calls.append('frame'), real_process(*a, **kw))[1])
     assert main(['replay', str(SAMPLE), str(tmp_path / 'out'), '--max-frames', '2']) == 0
     assert calls == ['warm_up', 'frame', 'frame']

@@ -91,8 +91,13 @@ def vertical_structure_mask(x: np.ndarray, y: np.ndarray, z: np.ndarray,
     cand, r_cand = _within(np.flatnonzero(candidate), r, limit)
     if cand.size == 0 or column.size == 0:
         return out
-    az_col, ring_col, n_az = _polar_cells(x[column], y[column], r_col, cell_m, cell_rad)
-    az_cand, ring_cand, _ = _polar_cells(x[cand], y[cand], r_cand, cell_m, cell_rad)
+    # cells in float64 whatever the input precision: a float32 cloud and its float64 copy must
+    # put every point in the same cell (the subsets are small; the cast costs little)
+    f64 = np.float64
+    az_col, ring_col, n_az = _polar_cells(x[column].astype(f64), y[column].astype(f64),
+                                          r_col.astype(f64), cell_m, cell_rad)
+    az_cand, ring_cand, _ = _polar_cells(x[cand].astype(f64), y[cand].astype(f64),
+                                         r_cand.astype(f64), cell_m, cell_rad)
     width = int(max(ring_col.max(), ring_cand.max())) + 3
     # highest column point per cell; one spare cell on every side: row 0 repeats the last
     # azimuth row and row n_az + 1 the first (azimuth wraps around), so each of the 9

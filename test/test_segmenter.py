@@ -203,14 +203,10 @@ def test_float32_input_and_its_float64_copy_give_the_same_cold_start():
     seg32, seg64 = GroundSegmenter(), GroundSegmenter()
     r32, r64 = seg32.segment(p32), seg64.segment(p32.astype(np.float64))
     assert seg32.hyperparameters == seg64.hyperparameters
-    # only the last interpolation step runs in the input's precision: a point within
-    # float32 round-off of its threshold may flip, and with it the structure test's verdict
-    # on the ground points around it (its rise/step limits are thresholds on z - z_hat too):
-    # measured 24 of 14k points with the defaults
-    feet32, feet64 = r32.stats.pop('structure_feet', 0), r64.stats.pop('structure_feet', 0)
     assert r32.stats == r64.stats
-    assert abs(feet32 - feet64) <= 30
-    assert (r32.ground_mask != r64.ground_mask).sum() <= 30
+    # only the last interpolation step runs in the input's precision: a point within
+    # float32 round-off of its threshold may flip
+    assert (r32.ground_mask != r64.ground_mask).sum() <= 2
 
 
 @pytest.mark.parametrize('n', [0, 1, 2, 3, 10])

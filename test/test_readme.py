@@ -58,3 +58,68 @@ def test_readme_names_the_launch_file():
     launch = README.parent / 'launch' / 'ground_segmentation.launch.py'
     assert launch.is_file()
     assert f'ros2 launch gp_ground_segmentation {launch.name}' in README.read_text()
+
+
+RESULTS = README.parent / 'benchmarks' / 'RESULTS.md'
+TRIPLE = r'\d\.\d{3} / \d\.\d{3} / \d\.\d{3}'
+
+
+def _section(text, start, end):
+    assert start in text, f'{start!r} missing'
+    begin = text.index(start)
+    return text[begin:text.index(end, begin)]
+
+
+def _table_rows(text):
+    """Cells of every markdown table row in text (header and separator rows included)."""
+    return [[c.strip() for c in line.strip().strip('|').split('|')]
+            for line in text.splitlines() if line.startswith('|')]
+
+
+def _quality_deltas():
+    """{(column header, group): 'F1 change'} from every variant table of bench_quality."""
+    text = RESULTS.read_text()
+    quality = _section(text, '<!-- BEGIN bench_quality -->', '<!-- END bench_quality -->')
+    deltas, header = {}, None
+    for cells in _table_rows(quality):
+        if cells[0] == 'data set / family':
+            header = cells
+        elif header is not None and len(cells) == len(header):
+            for name, cell in zip(header, cells):
+                found = re.fullmatch(r'\d\.\d{3} \(([+-]\d\.\d{3})\)', cell)
+                if found:
+                    deltas[name, cells[0].strip('*')] = found.group(1)
+    return deltas
+
+
+def test_readme_ablation_numbers_are_the_ones_in_results():
+    # Every row of the README's ablation table names a bench_quality variant column; its mean
+    # and per-group F1 changes must be what RESULTS.md's bench_quality section says.
+    deltas = _quality_deltas()
+    readme = README.read_text()
+    table = _section(readme, '| part | from | variant (bench_quality)', '\n\n')
+    rows = [r for r in _table_rows(table)[2:]]
+    assert len(rows) >= 14
+    for part, _origin, variant, mean, largest in rows:
+        column = variant.strip('`')
+        assert deltas[column, 'mean of groups'] == mean, (part, mean)
+        if largest.startswith('none'):
+            assert all(d in ('+0.000', '-0.000') for (c, _g), d in deltas.items() if c == column)
+            continue
+        pairs = re.findall(r'([a-z_0-9]+) ([+-]\d\.\d{3})', largest)
+        assert pairs, largest
+        for group, delta in pairs:
+            assert deltas[column, group] == delta, (part, group, delta)
+
+
+def test_readme_results_table_is_bench_quality():
+    # The headline quality table quotes bench_quality's pooled cold rows verbatim.
+    quality = _section(RESULTS.read_text(), '<!-- BEGIN bench_quality -->',
+                       '### Pooled per data set / family, streamed')
+    table = _section(README.read_text(), '| data (frames) | this project |', '\n\n')
+    triples = re.findall(TRIPLE, table)
+    assert len(triples) >= 40
+    for cells in _table_rows(table)[2:]:
+        found = re.findall(TRIPLE, ' | '.join(c.strip('*') for c in cells[1:]))
+        if found:
+            assert ' | '.join(found) in quality.replace('**', ''), cells[0]

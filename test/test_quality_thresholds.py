@@ -3,8 +3,8 @@
 
 Thresholds sit just under what the defaults reach (benchmarks/RESULTS.md, "Ground quality",
 measured 2026-11-26, vertical-structure test and cross-slope threshold on): a change that
-costs a family or a real scene more than about half a point of F1 fails here. The issue-10 targets that are met are
-asserted as such (crest recall).
+costs a family or a real scene more than about half a point of F1 fails here. The issue-10
+targets that are met are asserted as such (crest recall).
 """
 
 import sys

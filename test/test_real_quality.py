@@ -3,7 +3,8 @@
 
 Thresholds sit 0.005 below what was measured (benchmarks/bench_quality.py, RESULTS.md section
 "Ground quality", per frame, cold, 2026-11-26): a regression of half a point fails. The
-structure test's own gain is checked against the same scan segmented without it. Skipped when the data is absent.
+structure test's own gain is checked against the same scan segmented without it. Skipped
+when the data is absent.
 """
 
 import numpy as np

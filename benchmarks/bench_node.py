@@ -67,8 +67,9 @@ RESULTS = REPO / 'benchmarks' / 'RESULTS.md'
 SECTION = 'bench_node'
 STAGES = ('decode', 'segment', 'encode', 'total')
 # With --subscribers: also the node's own stages and two sums (per frame, then percentiles):
-# around = handoff + decode + encode (encode includes the surface cloud), i.e. everything the
-# node adds to segment(); node_total = handoff + total + publish (callback to published).
+# around = handoff + total - segment (decode, encode including the surface cloud, and the input
+# checks), i.e. everything the node adds to segment() before publishing; node_total = handoff +
+# total + publish (subscription callback to published).
 LOAD_STAGES = ('handoff', 'decode', 'segment', 'encode', 'surface', 'publish', 'around',
                'total', 'node_total')
 MB = 1024.0 * 1024.0
@@ -249,7 +250,7 @@ def with_sums(timing: dict) -> dict:
     node's stages."""
     if 'handoff' not in timing or 'publish' not in timing:
         return timing
-    return dict(timing, around=timing['handoff'] + timing['decode'] + timing['encode'],
+    return dict(timing, around=timing['handoff'] + timing['total'] - timing['segment'],
                 node_total=timing['handoff'] + timing['total'] + timing['publish'])
 
 
@@ -503,7 +504,8 @@ def latency_markdown(r: dict) -> str:
         '',
         f"Per-frame times from the node's ProcessingWindow (what /diagnostics summarises), "
         f"first {r['warmup_s']:g} s excluded (cold theta on the first frame). "
-        '`total` = decode + segment + encode (wall time of `pipeline.process_cloud`).',
+        '`total` = decode + segment + encode + input checks (wall time of '
+        '`pipeline.process_cloud`).',
         '',
         markdown_table(['stage', 'ms median', 'ms p95', 'ms max', 'frames'], rows),
         '',
@@ -547,9 +549,10 @@ def load_markdown(r: dict) -> str:
         f"started: {load}; other helpers' jobs shared the 2 cores. First "
         f"{r['warmup_s']:g} s excluded. Stages: handoff = slot wait (subscription callback "
         'to worker), decode, segment, encode (both subset clouds and the surface cloud), '
-        'surface (its part of encode), publish (the three publish calls); around = handoff + '
-        'decode + encode (everything around segment()); total = decode + segment + encode; '
-        'node_total = handoff + total + publish. Per-frame sums, then percentiles.',
+        'surface (its part of encode), publish (the three publish calls); total = decode + '
+        'segment + encode + input checks (process_cloud); around = handoff + total - segment '
+        '(everything around segment() but the publish calls); node_total = handoff + total + '
+        'publish. Per-frame sums, then percentiles.',
         '',
         markdown_table(['stage', 'ms median', 'ms p95', 'ms max', 'frames'], rows),
         '',

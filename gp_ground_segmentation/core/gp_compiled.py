@@ -124,12 +124,16 @@ def _solve_batched(r, d, z, noise_var, counts, sigma_f, gain, sigma_n):
 def _predict_batched(r, d, counts, alpha, a_inv, r_star, d_star, sigma_f, gain, with_std):
     """Posterior mean (minus the prior mean) and std at r_star, d_star (S, k) of every segment.
 
-    std is all zeros when ``with_std`` is False.
+    std is all zeros when ``with_std`` is False. The variance k*^T A^-1 k* is accumulated for
+    all k prediction points of a segment at once (innermost loop over them, which the compiler
+    vectorises); each point's sums still run in the same order as one point at a time would.
     """
     s_count, k_count = r_star.shape
     mean = np.zeros((s_count, k_count))
     std = np.zeros((s_count, k_count))
-    k_star = np.zeros(r.shape[1])
+    k_star = np.zeros((r.shape[1], k_count))  # [training point j, prediction point c]
+    w = np.zeros(k_count)  # (A^-1 k*)_i of every prediction point
+    reduce = np.zeros(k_count)  # k*^T A^-1 k* of every prediction point
     sf2 = sigma_f * sigma_f
     for s in range(s_count):
         m = counts[s]
@@ -141,17 +145,22 @@ def _predict_batched(r, d, counts, alpha, a_inv, r_star, d_star, sigma_f, gain, 
                 sl = l1 * l1 + l2 * l2
                 diff = r_star[s, c] - r[s, j]
                 kj = sf2 * np.sqrt(2.0 * l1 * l2 / sl) * np.exp(-diff * diff / sl)
-                k_star[j] = kj
+                k_star[j, c] = kj
                 v += kj * alpha[s, j]
             mean[s, c] = v
-            if with_std:
-                reduce = 0.0
-                for i in range(m):
-                    w = 0.0
-                    for j in range(m):
-                        w += a_inv[s, i, j] * k_star[j]
-                    reduce += k_star[i] * w
-                std[s, c] = np.sqrt(max(sf2 - reduce, 0.0))  # clamp round-off negatives
+        if not with_std:
+            continue
+        reduce[:] = 0.0
+        for i in range(m):
+            w[:] = 0.0
+            for j in range(m):
+                a = a_inv[s, i, j]
+                for c in range(k_count):
+                    w[c] += a * k_star[j, c]
+            for c in range(k_count):
+                reduce[c] += k_star[i, c] * w[c]
+        for c in range(k_count):
+            std[s, c] = np.sqrt(max(sf2 - reduce[c], 0.0))  # clamp round-off negatives
     return mean, std
 
 

@@ -284,8 +284,9 @@ class GroundSegmenter:
         return self._backend
 
     def warm_up(self) -> None:
-        """Compile (or load from numba's cache) the GP step and the grid pass now, not inside
-        the first frame (see gp_compiled.py for where the cache lives).
+        """Compile (or load from numba's cache) the GP step, the grid pass, the line growing loop
+        and the surface's ground offsets now, not inside the first frame (see gp_compiled.py for
+        where the cache lives).
 
         On failure this segmenter switches to numpy and the error is raised for the caller to
         report; segmenting still works.
@@ -298,7 +299,12 @@ class GroundSegmenter:
                 raise
             for dtype in (np.float32, np.float64):  # both input precisions of the grid pass
                 xyz = np.ones((3, 2), dtype=dtype)
-                build_grid(*xyz, 2, 2)
+                grid = build_grid(*xyz, 2, 2)
+            # the line growing loop and the surface's ground offsets (float64 only)
+            extract_lines(grid.candidate_r, grid.candidate_z, grid.density, variance_ratio=1.0,
+                          max_slope=1.0, max_distance_m=1.0, max_gap_m=1.0,
+                          max_density_jump=2.0)
+            ground_offsets(np.zeros(1), np.zeros(1, np.int32), np.zeros(1, np.int32), 1, 1, 0.1)
 
     @property
     def hyperparameters(self) -> Hyperparameters:
@@ -487,7 +493,8 @@ class GroundSegmenter:
         lines = extract_lines(grid.candidate_r, grid.candidate_z, grid.density,
                               variance_ratio=p.deming_variance_ratio, max_slope=p.line_max_slope,
                               max_distance_m=p.line_max_distance_m, max_gap_m=p.line_max_gap_m,
-                              max_density_jump=p.line_max_density_jump)
+                              max_density_jump=p.line_max_density_jump,
+                              compiled=self._backend == 'numba')
         training = self._training_candidates(grid, lines, stats)
         timings['lines'] = (time.perf_counter() - t) * 1e3
 

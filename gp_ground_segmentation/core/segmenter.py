@@ -284,9 +284,9 @@ class GroundSegmenter:
         return self._backend
 
     def warm_up(self) -> None:
-        """Compile (or load from numba's cache) the GP step, the grid pass, the line growing loop
-        and the surface's ground offsets now, not inside the first frame (see gp_compiled.py for
-        where the cache lives).
+        """Compile (or load from numba's cache) the GP step, the grid pass, the line growing loop,
+        the structure test's look-ups and the surface's ground offsets now, not inside the first
+        frame (see gp_compiled.py for where the cache lives).
 
         On failure this segmenter switches to numpy and the error is raised for the caller to
         report; segmenting still works.
@@ -297,9 +297,14 @@ class GroundSegmenter:
             except Exception:
                 self._backend = 'numpy'
                 raise
-            for dtype in (np.float32, np.float64):  # both input precisions of the grid pass
+            for dtype in (np.float32, np.float64):  # both input precisions of these passes
                 xyz = np.ones((3, 2), dtype=dtype)
                 grid = build_grid(*xyz, 2, 2)
+                # a ground point with a column point right above it reaches the compiled part
+                vertical_structure_mask(xyz[0], xyz[1] * 0, np.array([0.0, 0.5], dtype),
+                                        np.zeros(2, dtype), np.array([True, False]),
+                                        cell_m=0.03, cell_deg=0.25, rise_m=0.2,
+                                        max_height_m=0.7, step_m=0.05)
             # the line growing loop and the surface's ground offsets (float64 only)
             extract_lines(grid.candidate_r, grid.candidate_z, grid.density, variance_ratio=1.0,
                           max_slope=1.0, max_distance_m=1.0, max_gap_m=1.0,

@@ -251,7 +251,8 @@ def ablation_variants() -> dict:
       (d + sqrt(d^2 + 4 lambda s_rz^2)) / (2 s_rz), d = s_zz - lambda s_rr, tend to s_rz / s_rr,
       the ordinary least-squares fit of z on r; the range allows 1e4.
     * constant L: min_length_factor just below max_length_factor (equal is rejected), so every
-      d_i is clipped to one value and L = a d is the same everywhere;
+      d_i is clipped to one value and L = a d is the same everywhere; when the defaults are
+      already that, the paper's non-stationary L instead (d_i in [0.05, 2]);
     * theta frozen: no marginal-likelihood evaluations at all, theta stays at its initial value;
     * every bool field of SegmenterParams (``use_*`` switches and others) flipped, discovered at
       run time so that new switches appear without code changes.
@@ -259,8 +260,11 @@ def ablation_variants() -> dict:
     d = SegmenterParams()
     out = {
         'OLS lines (deming_variance_ratio=1e4)': {'deming_variance_ratio': 1e4},
-        'constant L (min_length_factor=0.999*max)': {
-            'min_length_factor': 0.999 * d.max_length_factor},
+        **({'constant L (min_length_factor=0.999*max)': {
+            'min_length_factor': 0.999 * d.max_length_factor}}
+           if d.min_length_factor < 0.9 * d.max_length_factor else
+           {'non-stationary L (min_length_factor=0.05, max_length_factor=2)': {
+               'min_length_factor': 0.05, 'max_length_factor': 2.0}}),
         'theta frozen (0 optimizer evaluations)': {'optimizer_first_frame_evaluations': 0,
                                                    'optimizer_max_evaluations': 0},
     }
@@ -268,6 +272,19 @@ def ablation_variants() -> dict:
         if isinstance(f.default, bool):
             out[f'{f.name}={not f.default}'] = {f.name: not f.default}
     return {name: dataclasses.replace(d, **change).validate() for name, change in out.items()}
+
+
+def theta_stream_variants() -> dict:
+    """Whole-frame theta learning in a stream (the paper's second idea), streamed mode only.
+
+    * first frame only: the cold start learns (``optimizer_first_frame_evaluations``), later
+      frames keep that theta -- what the per-frame evaluations add;
+    * frozen: theta never learns, not even on the first frame.
+    """
+    d = SegmenterParams()
+    return {'theta learned on the first frame only': d.replace(optimizer_max_evaluations=0),
+            'theta frozen': d.replace(optimizer_max_evaluations=0,
+                                      optimizer_first_frame_evaluations=0)}
 
 
 # ------------------------------------------------------------------------------------ running
@@ -551,6 +568,14 @@ def main(argv=None) -> int:
         parts += ['', '### Variants of this project (cold; pooled F1 per group, change vs '
                   'defaults)', '', variant_table(groups, variant_results),
                   '', f'Variants took {time.perf_counter() - t0:.0f} s.']
+        if args.ablation:
+            streamed = {'defaults': results['streamed']['gp'] if 'gp' in results['streamed']
+                        else {g.name: run_frames('gp', g.frames, 'streamed') for g in groups}}
+            for name, params in theta_stream_variants().items():
+                streamed[name] = {g.name: run_frames('gp', g.frames, 'streamed', params)
+                                  for g in groups}
+            parts += ['', '### theta learning in a stream (streamed; pooled F1 per group, '
+                      'change vs defaults)', '', variant_table(groups, streamed)]
         if args.cv:
             counts = {n: {g: [{k: m[k] for k in ('tp', 'fp', 'fn', 'tn')} for m in ms]
                           for g, ms in r.items()} for n, r in variant_results.items()}

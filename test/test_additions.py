@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from gp_ground_segmentation import GroundSegmenter, SegmenterParams
-from gp_ground_segmentation.core.additions import (elevated_plateaus, ground_under_sensor,
+from gp_ground_segmentation.core.additions import (cross_segment_rise, elevated_plateaus,
+                                                   ground_under_sensor, one_point_line_slopes,
                                                    outlier_candidates, steep_line_candidates)
 from scenes.synthetic import make_scene, simulate_scan
 
@@ -14,7 +15,7 @@ NAN = np.nan
 PLATEAU = dict(step_up_m=0.3, max_slope=0.7, max_gap_m=6.0)
 
 
-def plateaus(rows):
+def plateaus(rows, start_height_m=None):
     """rows: (r, z, slope_before or None) per segment, padded with NaN to one (M, N) array."""
     n = max(len(r) for r, _, _ in rows)
 
@@ -23,7 +24,7 @@ def plateaus(rows):
     cand_r = np.stack([pad(r) for r, _, _ in rows])
     cand_z = np.stack([pad(z) for _, z, _ in rows])
     slope = np.stack([pad(s if s is not None else [NAN] * len(r)) for r, _, s in rows])
-    return elevated_plateaus(cand_r, cand_z, slope, **PLATEAU)
+    return elevated_plateaus(cand_r, cand_z, slope, start_height_m=start_height_m, **PLATEAU)
 
 
 # (r, z, slope_before, expected elevated): each row one rule of the state machine
@@ -75,6 +76,73 @@ def test_plateau_heights_far_from_the_sensor():
     np.testing.assert_array_equal(got, np.asarray(expected, bool))
 
 
+def test_plateau_drop_that_stays_above_the_ground():
+    """A 2 m step up, then down 0.8 m to 1.2 m (a roof to a bonnet, still 1.2 m above the
+    ground at 0): the drop rule ends the plateau there, without it the plateau goes on until
+    the ground (0.1 <= 0 + 0.3) at r = 8."""
+    cand_r = np.array([[2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0]])
+    cand_z = np.array([[0.0, 0.0, 2.0, 2.0, 1.2, 1.2, 0.1]])
+    slope = np.full_like(cand_r, NAN)
+    with_drop = elevated_plateaus(cand_r, cand_z, slope, **PLATEAU)
+    np.testing.assert_array_equal(with_drop[0], [0, 0, 1, 1, 0, 0, 0])
+    without = elevated_plateaus(cand_r, cand_z, slope, end_on_drop=False, **PLATEAU)
+    np.testing.assert_array_equal(without[0], [0, 0, 1, 1, 1, 1, 0])
+
+
+def test_plateau_starts_from_the_ground_under_the_sensor():
+    """A body filling the segment from 1 m on: without a start height its first candidate is
+    the segment's first and nothing is a step up; from (r = 0, z = -1.7) the rise of 1.7 m
+    over 1 m (chord 1.7 > 0.7) enters the plateau at once, and the ground behind the body
+    (back down to -1.7 + 0.3) leaves it."""
+    r, z = [1.0, 1.5, 2.0, 6.0, 7.0], [0.0, 0.0, 0.1, -1.7, -1.7]
+    np.testing.assert_array_equal(plateaus([(r, z, None)])[0], [0, 0, 0, 0, 0])
+    np.testing.assert_array_equal(plateaus([(r, z, None)], start_height_m=-1.7)[0],
+                                  [1, 1, 1, 0, 0])
+    # ground that starts at the sensor's own height is not a step up from it
+    flat = ([1.0, 2.0, 3.0], [-1.65, -1.7, -1.6], None)
+    assert not plateaus([flat], start_height_m=-1.7).any()
+
+
+def test_cross_segment_rise_on_a_plane_rising_across_the_beams():
+    """4 segments, edges at r = 10 and 20 m; z_hat of segment m is 0.1 m * m (the ground
+    rises 0.1 m per segment); segments wrap, so segment 0 sees segments 3 and 1, segment 3
+    sees 2 and 0."""
+    edges = np.tile([10.0, 20.0], (4, 1))
+    mean = np.repeat(np.arange(4.0) * 0.1, 2).reshape(4, 2)
+    got = cross_segment_rise(edges, mean, max_slope=1.0)
+    np.testing.assert_allclose(got, [[0.1, 0.1], [0.1, 0.1], [0.1, 0.1], [0.1, 0.1]])
+    # the cap: max_slope times the segment's arc width 2 pi r / M (= 0.5 * pi * r here):
+    # 0.005 * 0.5 * pi * 10 = 0.0785 < 0.1 at r = 10, 0.157 > 0.1 at r = 20
+    capped = cross_segment_rise(edges, mean, max_slope=0.005)
+    np.testing.assert_allclose(capped[:, 0], 0.005 * 0.5 * np.pi * 10.0)
+    np.testing.assert_allclose(capped[:, 1], 0.1)
+
+
+def test_cross_segment_rise_reads_neighbours_at_the_same_range():
+    """Segments have their own bin edges: the neighbour's ground is interpolated at this
+    segment's r (and held at its first or last value outside its range)."""
+    edges = np.array([[2.0, 10.0], [2.0, 22.0], [6.0, 10.0]])
+    mean = np.array([[0.0, 0.0], [0.0, 2.0], [1.0, 1.0]])
+    got = cross_segment_rise(edges, mean, max_slope=10.0)
+    # segment 0: neighbours 2 (1.0, held below r = 6) and 1 (0 at r = 2, 0.8 at r = 10)
+    # segment 2: neighbours 1 (0.4 at r = 6, 0.8 at r = 10) and 0 (0)
+    np.testing.assert_allclose(got[0], [0.5, 0.1])
+    np.testing.assert_allclose(got[2], [0.2, 0.4])
+
+
+def test_one_point_lines_get_the_chord_from_the_previous_candidate():
+    """Row 0: ground at r = 2, 3 (a line, slope 0.1), then a wall candidate 1 m up at r = 4
+    (chord 1.0 / 1 m) and one at r = 4.5, 2 m up (chord 1.0 / 0.5 m = 2), an empty bin, and a
+    candidate at r = 8, 0.5 m below the last (chord |-1.5 / 3.5|). Row 1: a lone candidate
+    (first of its segment: no chord, stays NaN). Lines with a slope keep it."""
+    cand_r = np.array([[2.0, 3.0, 4.0, 4.5, NAN, 8.0], [5.0, NAN, NAN, NAN, NAN, NAN]])
+    cand_z = np.array([[0.0, 0.1, 1.1, 2.1, NAN, 0.6], [0.3, NAN, NAN, NAN, NAN, NAN]])
+    slope = np.array([[0.1, 0.1, NAN, NAN, NAN, NAN], [NAN] * 6])
+    got = one_point_line_slopes(slope, cand_r, cand_z)
+    np.testing.assert_allclose(got[0], [0.1, 0.1, 1.0, 2.0, NAN, 1.5 / 3.5])
+    assert np.isnan(got[1]).all()
+
+
 # --- ground under the sensor -----------------------------------------------------------------
 def anchor_problem():
     """3 segments x 3 bins; lines 0..4 with intercepts and counts set by hand."""
@@ -119,6 +187,16 @@ def test_outlier_thresholds_are_one_sided_each():
                                   [True, False, True, False, False])
 
 
+def test_outliers_worst_above_per_segment():
+    """Row 0: two candidates above 0.8 m, only the worse (1.2) goes; the noise spike (-1.1) is
+    dropped whatever the rest. Row 1: one above the limit, it goes. Row 2: none."""
+    loo = np.array([[0.9, 1.2, -1.1, NAN], [0.1, 0.85, 0.2, NAN], [0.1, NAN, 0.7, -0.2]])
+    got = outlier_candidates(loo, above_m=0.8, below_m=1.0, worst_above_only=True)
+    np.testing.assert_array_equal(got, [[0, 1, 1, 0], [0, 1, 0, 0], [0, 0, 0, 0]])
+    every = outlier_candidates(loo, above_m=0.8, below_m=1.0)
+    np.testing.assert_array_equal(every[0], [1, 1, 1, 0])
+
+
 def test_steep_line_mask():
     np.testing.assert_array_equal(steep_line_candidates(np.array([0.8, 0.7, NAN, 0.1]), 0.7),
                                   [True, False, False, False])
@@ -147,6 +225,23 @@ def test_each_switch_turns_its_addition_off(mixed_scan):
     assert no_outliers.stats['outlier_candidates'] == 0
     no_anchor = run(pts, use_anchor=False)
     assert 'anchor_height_m' not in no_anchor.stats
-    for res in (no_plateaus, no_outliers, no_anchor):
+    cross = run(pts, use_cross_slope_threshold=not SegmenterParams().use_cross_slope_threshold)
+    no_chord = run(pts, use_chord_slope_for_single_points=False)
+    assert no_chord.stats['steep_line_candidates'] < base.stats['steep_line_candidates']
+    for res in (no_plateaus, no_outliers, no_anchor, cross, no_chord):
         assert not np.array_equal(res.ground_mask, base.ground_mask)  # each one matters here
         assert res.ground_mask.any() and res.obstacle_mask.any()
+
+
+def test_prior_mean_is_the_ground_under_the_vehicle(mixed_scan):
+    params = SegmenterParams(optimizer_first_frame_evaluations=0)
+    res = GroundSegmenter(params).segment(mixed_scan.points, details=True)
+    z_train = res.details.grid.candidate_z[res.details.training]
+    assert res.details.gp.mean == np.clip(res.stats['anchor_height_m'], z_train.min(),
+                                          z_train.max())
+    median = GroundSegmenter(params.replace(prior_mean_at_anchor=False)).segment(
+        mixed_scan.points, details=True)
+    z = median.details.grid.candidate_z[median.details.training]
+    # FrameGP's default: the median of the training heights, the anchor counted once per segment
+    assert median.details.gp.mean != res.details.gp.mean
+    assert np.min(z) < median.details.gp.mean < np.max(z)

@@ -44,8 +44,8 @@ def test_loso_cv_chooses_on_the_other_groups_only():
 
 
 def test_parse_variant_types_values_and_rejects_bad_input():
-    name, params = bq.parse_variant('short:max_length_factor=1.5,num_bins=16')
-    assert name == 'short' and params.max_length_factor == 1.5 and params.num_bins == 16
+    name, params = bq.parse_variant('long:max_length_factor=4.5,num_bins=16')
+    assert name == 'long' and params.max_length_factor == 4.5 and params.num_bins == 16
     assert isinstance(params.num_bins, int)
     for bad in ('no_colon', ':num_bins=3', 'x:not_a_field=1', 'x:num_bins'):
         with pytest.raises(ValueError):
@@ -62,8 +62,13 @@ def test_ablation_switches_every_bool_field_and_each_paper_component():
             assert getattr(variants[f'{f.name}={not f.default}'], f.name) is (not f.default)
     frozen = [p for n, p in variants.items() if n.startswith('theta frozen')][0]
     assert frozen.optimizer_max_evaluations == 0 == frozen.optimizer_first_frame_evaluations
-    const = [p for n, p in variants.items() if n.startswith('constant L')][0]
-    assert const.min_length_factor < const.max_length_factor == defaults.max_length_factor
+    # the defaults hold L constant (chosen by cross-validation): the variant is the paper's
+    # non-stationary L; with non-stationary defaults it would be constant L
+    (name, length), = [(n, p) for n, p in variants.items()
+                       if n.startswith(('constant L', 'non-stationary L'))]
+    constant_default = defaults.min_length_factor >= 0.9 * defaults.max_length_factor
+    assert name.startswith('non-stationary' if constant_default else 'constant')
+    assert (length.min_length_factor < 0.1 * length.max_length_factor) is constant_default
     ols = [p for n, p in variants.items() if n.startswith('OLS')][0]
     # A very large variance ratio makes the Deming slope the least-squares slope of z on r.
     rng = np.random.default_rng(0)

@@ -187,7 +187,7 @@ def test_parameter_service_valid_invalid_and_effect(kitti_msgs, ros_harness):
     assert all(r.successful for r in results), [r.reason for r in results]
     assert node.get_parameter('ground_threshold_m').value == 0.0
     # Applied at the next frame, not before.
-    assert node.segmenter_params.ground_threshold_m == 0.2
+    assert node.segmenter_params.ground_threshold_m == SegmenterParams().ground_threshold_m > 0
     again = _with_invalid_points(kitti_msgs[0], 4242)
     g_tight, _ = h.publish_and_wait(again)
     assert node.segmenter_params.ground_threshold_m == 0.0

@@ -142,7 +142,7 @@ def test_reasons_name_the_problem(harness):
 CROSS_FIELD = [
     ('slope_floor', 0.9, 'slope_floor'),  # == slope_ceiling 0.9
     ('slope_ceiling', 0.05, None),  # control: still above slope_floor 0.02, accepted
-    ('min_length_factor', 5.0, 'min_length_factor'),  # > max_length_factor 3.0
+    ('min_length_factor', 5.0, 'min_length_factor'),  # > max_length_factor 2.0
     ('max_length_factor', 0.04, 'min_length_factor'),  # < min_length_factor 0.05
     ('sigma_f_init_m', 30.0, 'sigma_f_init_m'),  # > sigma_f_max_m 20
     ('sigma_f_min_m', 25.0, 'sigma_f_min_m'),  # > sigma_f_max_m

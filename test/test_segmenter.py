@@ -108,8 +108,8 @@ def test_real_semantickitti_frame_f1_and_recall():
     labels = read_semantickitti_labels(LABELED_LABELS, expected_points=len(points))
     _, result = _stream(points, frames=3)
     m = ground_metrics(result.ground_mask, labels)
-    assert m['f1'] >= 0.93, m
-    assert m['recall'] >= 0.95, m
+    assert m['f1'] >= 0.97, m  # measured 0.974 (P 0.980, R 0.967), 3 frames streamed
+    assert m['recall'] >= 0.963, m
 
 
 @needs_data

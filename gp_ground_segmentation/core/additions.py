@@ -9,7 +9,16 @@ Each is a function from arrays to a mask or a height and has a ``use_*`` switch 
 * :func:`ground_under_sensor` (``use_anchor``): height of the ground under the vehicle, given
   to the GP as one shared extra training point at r = 0 in every segment.
 * :func:`outlier_candidates` (``use_outlier_rejection``): leave-one-out residual tests that
-  drop below-ground reflection noise and obstacle tops from the training set.
+  drop below-ground reflection noise and obstacle tops from the training set
+  (``outlier_worst_per_segment``: at most the worst obstacle top per segment and pass; off).
+* ``start_height_m`` of :func:`elevated_plateaus` (``plateau_from_sensor_ground``): the plateau
+  test of every segment starts from the ground under the sensor.
+* :func:`one_point_line_slopes` (``use_chord_slope_for_single_points``): one-point lines get
+  the slope of the chord from the previous candidate, so walls meet the steep-line filter.
+* :func:`cross_segment_rise` (``use_cross_slope_threshold``; off): widen the ground threshold
+  by the rise of the ground across the segment.
+
+The GP prior mean at the anchor height (``prior_mean_at_anchor``) is set in the segmenter.
 
 :func:`steep_line_candidates` is the paper's reading ("large sloped line-segments relate to
 non-ground structures"), not an addition; it lives here because it is a mask over the
@@ -30,7 +39,9 @@ def steep_line_candidates(slope: np.ndarray, max_slope: float) -> np.ndarray:
 
 
 def elevated_plateaus(cand_r: np.ndarray, cand_z: np.ndarray, slope_before: np.ndarray, *,
-                      step_up_m: float, max_slope: float, max_gap_m: float) -> np.ndarray:
+                      step_up_m: float, max_slope: float, max_gap_m: float,
+                      start_height_m: float | None = None,
+                      end_on_drop: bool = True) -> np.ndarray:
     """(M, N) bool: candidates on a plateau entered by a steep step up (an obstacle's top).
 
     A state machine per segment over its candidates in order of r (all segments in lock-step):
@@ -41,18 +52,27 @@ def elevated_plateaus(cand_r: np.ndarray, cand_z: np.ndarray, slope_before: np.n
     * leave (that candidate is not flagged) when the candidate comes back down to within
       ``step_up_m`` of the ground before the step, extrapolated from the last candidate before
       the step along ``slope_before`` there (the slope of the line that ended at the step; 0
-      when that line had fewer than two points), or drops more than ``step_up_m`` from the
-      previous candidate, or lies more than ``max_gap_m`` beyond it (the far edge of the
-      obstacle or its shadow: whatever is seen beyond is ground again). The next candidate
-      may enter again.
+      when that line had fewer than two points), or (``end_on_drop``) drops more than
+      ``step_up_m`` from the previous candidate, or lies more than ``max_gap_m`` beyond it
+      (the far edge of the obstacle or its shadow: whatever is seen beyond is ground again).
+      The next candidate may enter again. Without ``end_on_drop`` a drop that stays above the
+      ground (a roof down to a bonnet, a wall's top down to a lower wall) keeps the plateau.
+
+    ``start_height_m``: when given, every segment starts from the ground under the sensor,
+    a virtual previous candidate at (r = 0, this height) -- so a person or a car filling a
+    segment next to the sensor is a step up from the vehicle's own ground even though no
+    ground candidate precedes it. None starts at each segment's first candidate.
 
     ``slope_before`` is ``LineSegments.slope_before``. Heights are taken relative to each
     segment's first candidate, as in ``lines.extract_lines``.
     """
-    present, rr, zz, _, _ = relative_to_first(cand_r, cand_z)
+    present, rr, zz, r0, z0 = relative_to_first(cand_r, cand_z)
     m_count, n_count = cand_r.shape
     last_r = np.full(m_count, np.nan)
     last_z = np.full(m_count, np.nan)
+    if start_height_m is not None:
+        last_r = -r0
+        last_z = start_height_m - z0
     elevated_now = np.zeros(m_count, dtype=bool)
     base_r = np.zeros(m_count)  # ground r, z and slope just before the step up
     base_z = np.zeros(m_count)
@@ -75,7 +95,8 @@ def elevated_plateaus(cand_r: np.ndarray, cand_z: np.ndarray, slope_before: np.n
                 base_slope = np.where(enter, line_slope, base_slope)
             if elevated_now.any():
                 back_down = z <= base_z + base_slope * (r - base_r) + step_up_m
-                leave = has & elevated_now & ((rise < -step_up_m) | back_down | (dr > max_gap_m))
+                drop = (rise < -step_up_m) if end_on_drop else np.zeros_like(has)
+                leave = has & elevated_now & (drop | back_down | (dr > max_gap_m))
                 elevated_now = (elevated_now | enter) & ~leave
             else:
                 elevated_now = enter
@@ -109,12 +130,78 @@ def ground_under_sensor(cand_z: np.ndarray, training: np.ndarray, line_id: np.nd
     return float(np.median(cand_z[training]))
 
 
-def outlier_candidates(loo_residual: np.ndarray, *, above_m: float,
-                       below_m: float) -> np.ndarray:
+def outlier_candidates(loo_residual: np.ndarray, *, above_m: float, below_m: float,
+                       worst_above_only: bool = False) -> np.ndarray:
     """Mask of candidates whose leave-one-out residual z_i - mean_{-i} is an outlier.
 
     Above ``above_m``: an obstacle top, not ground. Below ``-below_m``: below-ground reflection
     noise. NaN residuals (no training candidate there) are not outliers.
+
+    ``worst_above_only``: of the candidates above ``above_m`` keep only the highest residual
+    of each segment (row). One obstacle top pulls its neighbours' leave-one-out means up or
+    down too; dropping every candidate over the limit at once also drops good ground next to
+    it (the near slope before a crest, seen between the anchor and a low far flat). Removing
+    the worst per pass is the usual iterative way.
     """
     with np.errstate(invalid='ignore'):
-        return (loo_residual > above_m) | (loo_residual < -below_m)
+        above = loo_residual > above_m
+        if worst_above_only and above.any():
+            top = np.max(np.where(np.isnan(loo_residual), -np.inf, loo_residual), axis=1)
+            above &= loo_residual >= top[:, None]
+        return above | (loo_residual < -below_m)
+
+
+def cross_segment_rise(edges: np.ndarray, mean: np.ndarray, max_slope: float) -> np.ndarray:
+    """(M, N + 1) how much the predicted ground rises across one segment at each bin edge (m).
+
+    The GP models z(r) per segment, and a bin's candidate is its lowest point: where the ground
+    rises *across* the beams (an embankment beside the road), the candidate follows the
+    segment's low side and the high side sits above z_hat by up to the rise across the
+    segment. The rise is estimated from the neighbouring segments' ground at the same r,
+    |z_hat[m + 1](r) - z_hat[m - 1](r)| / 2 (segments wrap around), and capped at what a slope
+    of ``max_slope`` gives over the segment's width 2 pi r / M there: a steeper rise is
+    structure (or a poor fit next to it), not ground, and must not widen the threshold more.
+
+    ``edges``: (M, N + 1) r of every segment's bin edges (increasing along each row);
+    ``mean``: z_hat there.
+    """
+    m_count = edges.shape[0]
+    span = float(np.nanmax(edges)) + 1.0
+    # one sorted 1-D table of all rows (row offset by a span larger than any r): np.interp
+    # then looks up every segment's edges in its neighbour's row at once
+    offset = np.arange(m_count)[:, None] * span
+    flat_r = (edges + offset).ravel()
+    flat_z = mean.ravel()
+
+    def neighbour(shift):
+        rows = (np.arange(m_count) + shift) % m_count
+        query = np.clip(edges, edges[rows, :1], edges[rows, -1:]) + offset[rows]
+        return np.interp(query, flat_r, flat_z)
+
+    rise = 0.5 * np.abs(neighbour(1) - neighbour(-1))
+    cap = max_slope * (2.0 * np.pi / m_count) * edges
+    return np.minimum(rise, cap)
+
+
+def one_point_line_slopes(slope: np.ndarray, cand_r: np.ndarray,
+                          cand_z: np.ndarray) -> np.ndarray:
+    """``slope`` (M, N) with every one-point line (NaN slope) given |dz/dr| of the chord from
+    the previous candidate of its segment.
+
+    Algorithm 1 ends a line *before* it gets steeper than zeta_b, so a wall or a car front is
+    not a steep line but a string of one-point lines, and a NaN slope would read as flat
+    ground (the longest length scale, and no steep-line filter). The chord that ended the
+    previous line is the slope the data show there. (The chord to the *next* candidate was
+    measured too: it marks the last ground candidate before a crest as steep and cost the
+    crest family 0.009 F1.) A segment's first candidate keeps NaN.
+    """
+    present = np.isfinite(cand_r) & np.isfinite(cand_z)
+    col = np.where(present, np.arange(cand_r.shape[1]), -1)
+    prev = np.maximum.accumulate(col, axis=1)  # last candidate at or before each bin
+    prev = np.concatenate([np.full((prev.shape[0], 1), -1), prev[:, :-1]], axis=1)
+    safe = np.maximum(prev, 0)
+    with np.errstate(divide='ignore', invalid='ignore'):
+        chord = np.abs((cand_z - np.take_along_axis(cand_z, safe, axis=1))
+                       / (cand_r - np.take_along_axis(cand_r, safe, axis=1)))
+    chord = np.where((prev >= 0) & present & np.isfinite(chord), chord, np.nan)
+    return np.where(np.isnan(slope), chord, slope)

@@ -59,8 +59,9 @@ def _param(default, description: str, low=None, high=None):
 class SegmenterParams:
     """All tunables of the Gaussian-process ground segmenter.
 
-    Defaults were chosen on the shared real frames (SemanticKITTI, KITTI 00, VLP-16/32, XT32) and
-    on the synthetic sloped scenes together; see README "Choosing the defaults" for the sweeps.
+    Defaults were chosen by leave-one-group-out cross-validation over every labelled real scene
+    and synthetic family of benchmarks/bench_quality.py (benchmarks/RESULTS.md, "Ground
+    quality"), never on one frame.
     """
 
     # --- radial grid (grid.py) -------------------------------------------------------------
@@ -83,6 +84,10 @@ class SegmenterParams:
     line_max_distance_m: float = _param(
         0.15, 'delta: perpendicular distance (m) from a new candidate to the current line above '
         'which the candidate is a critical point', 0.005, 10.0)
+    use_chord_slope_for_single_points: bool = _param(
+        True, 'ours: a one-point line (a string of them is how Algorithm 1 sees a wall) gets the '
+        '|slope| of the steeper chord to its neighbouring candidates instead of none (read as '
+        'flat); steeper than zeta_b it does not train the GP, otherwise it sets its L')
     use_elevated_plateaus: bool = _param(
         True, 'ours, not the paper\'s: candidates on an elevated plateau (see plateau_step_m) '
         'do not train the GP; false trains on them')
@@ -90,6 +95,14 @@ class SegmenterParams:
         0.3, 'a steep step up higher than this (m) between successive candidates starts an '
         'elevated plateau (an obstacle top whose ground is occluded), which does not train the '
         'GP; keep it above curb height', 0.05, 10.0)
+    plateau_from_sensor_ground: bool = _param(
+        True, 'ours: every segment\'s plateau test starts from the ground under the sensor '
+        '(r = 0, the anchor height), so a person or car filling a segment next to the sensor '
+        'is a step up; false starts at the segment\'s first candidate')
+    plateau_ends_on_drop: bool = _param(
+        False, 'a plateau also ends where the next candidate drops more than plateau_step_m '
+        '(the earlier rule); false ends it only back at the ground level or after a gap, so '
+        'a drop that stays above the ground (roof to bonnet, high wall to low) keeps it')
     line_max_gap_m: float = _param(
         6.0, 'zeta_m: radial gap (m) between successive candidates above which a line ends', 0.1,
         1000.0)
@@ -111,7 +124,7 @@ class SegmenterParams:
         0.05, 'lower clip of the length-scale factor d_i = log(1/g_i)/rho_i (dimensionless; '
         'L_i = a*d_i in m)', 1e-4, 100.0)
     max_length_factor: float = _param(
-        3.0, 'upper clip of the length-scale factor d_i (dimensionless)', 1e-2, 1e5)
+        2.0, 'upper clip of the length-scale factor d_i (dimensionless)', 1e-2, 1e5)
     sigma_f_init_m: float = _param(0.5, 'initial sigma_f, GP signal std (m)', 1e-3, 100.0)
     length_scale_gain_init: float = _param(
         2.0, 'initial a, the gain of L_i = a*d_i (m per unit d)', 1e-3, 1e3)
@@ -140,11 +153,20 @@ class SegmenterParams:
         0.8, 'a candidate whose leave-one-out GP residual is above this (m) is an obstacle top, '
         'not ground: it stops training the GP (checked before and after learning theta)',
         0.01, 100.0)
+    outlier_worst_per_segment: bool = _param(
+        False, 'ours: each outlier pass drops at most one obstacle-top candidate per segment '
+        '(the highest leave-one-out residual above outlier_residual_m), so ground next to an '
+        'obstacle top is not dropped with it; false drops all above the limit at once')
 
     use_anchor: bool = _param(
         True, 'ours, not the paper\'s: every segment\'s GP gets a shared pseudo-candidate at '
         'r = 0, the ground under the vehicle (median of the first lines\' intercepts); false '
         'leaves segments independent')
+    prior_mean_at_anchor: bool = _param(
+        True, 'ours: the GP prior mean is the height of the ground under the vehicle (the '
+        'anchor, clipped to the training candidates\' heights; needs use_anchor), so long gaps '
+        'fall back to the vehicle\'s own ground level; false uses the median height of the '
+        'training candidates')
     anchor_std_m: float = _param(
         0.3, 'noise std (m) of the shared pseudo-candidate at r = 0 that tells every segment '
         'the height of the ground under the vehicle', 0.01, 100.0)
@@ -155,6 +177,15 @@ class SegmenterParams:
         0.0, 10.0)
     ground_threshold_std_factor: float = _param(
         0.0, 'multiplier of the GP predictive std added to ground_threshold_m', 0.0, 100.0)
+    use_cross_slope_threshold: bool = _param(
+        False, 'ours, not the paper\'s: widen the ground threshold by the rise of the predicted '
+        'ground across the segment (from the neighbouring segments at the same r, capped at a '
+        'cross_slope_max slope), so the high side of ground sloping across the beams stays '
+        'ground')
+    cross_slope_max: float = _param(
+        0.35, 'largest ground slope across the beams (dz per m of arc) that widens the threshold '
+        '(use_cross_slope_threshold); a steeper rise between neighbouring segments is '
+        'structure and widens it no more than this slope would', 0.0, 10.0)
     max_threshold_m: float = _param(
         0.3, 'cap (m) on the total ground threshold, however large the predictive std; must be '
         'at least ground_threshold_m', 0.0, 100.0)

@@ -9,17 +9,23 @@ marks the paper's steps, [ours] our additions (``additions.py``, each with a ``u
 ``lines``    [paper] Algorithm 1 over each segment's candidates: line-segments, critical
              points, slopes (lines.py). Candidates on lines steeper than zeta_b do not train
              the GP ("large sloped line-segments relate to non-ground structures").
-             [ours] nor do candidates on elevated plateaus (``use_elevated_plateaus``).
+             [ours] nor do candidates on elevated plateaus (``use_elevated_plateaus``; the
+             test starts from the ground under the sensor, ``plateau_from_sensor_ground``);
+             one-point lines take the slope of the chord from the previous candidate
+             (``use_chord_slope_for_single_points``), so walls are steep, not flat.
 ``gp_fit``   [paper] length scales from slope and rho~, theta learned on the whole-frame
              marginal likelihood (eq. 14; warm-started and capped: ours).
              [ours] the ground under the vehicle as a shared training point at r = 0
-             (``use_anchor``); leave-one-out rejection of outlier candidates before and after
-             learning (``use_outlier_rejection``).
+             (``use_anchor``), also the GP prior mean (``prior_mean_at_anchor``);
+             leave-one-out rejection of outlier candidates before and after learning
+             (``use_outlier_rejection``).
 ``predict``  [paper] GP posterior mean (and std) of the ground height, here at every bin edge
              (N + 1 per segment: a dense N x n kernel against every raw point would cost 100x
              more).
 ``label``    ground height of each point by linear interpolation along r between the bin
-             edges of its segment; ground when z - z_hat <= threshold.
+             edges of its segment; ground when z - z_hat <= threshold ([ours, off by
+             default] widened by the ground's rise across the segment,
+             ``use_cross_slope_threshold``).
 ``structure`` (``use_vertical_structure_test``) ground points with a column of returns right
              above them are the feet of walls, fences, cars, trunks and bushes: obstacle
              (``structure.vertical_structure_mask``).
@@ -55,6 +61,7 @@ Choices where the paper is vague, each a parameter (see params.py):
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 from typing import NamedTuple, Optional
@@ -354,9 +361,15 @@ class GroundSegmenter:
         steep = has & additions.steep_line_candidates(lines.slope, p.line_max_slope)
         elevated = np.zeros_like(has)
         if p.use_elevated_plateaus:
+            start = None
+            if p.plateau_from_sensor_ground:
+                start = additions.ground_under_sensor(grid.candidate_z, has & ~steep,
+                                                      lines.line_id, lines.line_count,
+                                                      lines.intercept)
             elevated = additions.elevated_plateaus(
                 grid.candidate_r, grid.candidate_z, lines.slope_before, step_up_m=p.plateau_step_m,
-                max_slope=p.line_max_slope, max_gap_m=p.line_max_gap_m)
+                max_slope=p.line_max_slope, max_gap_m=p.line_max_gap_m, start_height_m=start,
+                end_on_drop=p.plateau_ends_on_drop)
         stats.update(candidates=int(has.sum()), steep_line_candidates=int(steep.sum()),
                      elevated_candidates=int(elevated.sum()), lines=int(lines.line_count.size))
         return has & ~steep & ~elevated
@@ -387,8 +400,9 @@ class GroundSegmenter:
         if not p.use_outlier_rejection:
             return gp, sol, outliers
         loo = gp.to_grid(gp.loo_residuals(sol), np.nan)
-        new = ~outliers & additions.outlier_candidates(loo, above_m=p.outlier_residual_m,
-                                                       below_m=p.noise_spike_m)
+        new = ~outliers & additions.outlier_candidates(
+            loo, above_m=p.outlier_residual_m, below_m=p.noise_spike_m,
+            worst_above_only=p.outlier_worst_per_segment)
         if not new.any():
             return gp, sol, outliers
         outliers = outliers | new
@@ -425,10 +439,19 @@ class GroundSegmenter:
     def _fit_ground_model(self, grid: RadialGrid, lines: LineSegments, training,
                           stats: dict) -> _GroundModel:
         """Stage ``gp_fit``: length scales, the anchor, the GP, robust learning of theta."""
+        p = self._params
         d = self._length_factors(grid, lines, training)
         anchor = self._anchor(grid, lines, training, d, stats)
+        # the prior mean: the level plane through the ground under the vehicle, or the median
+        # height of the training points (FrameGP's default). The anchor extrapolates lines to
+        # r = 0; kept within the heights of the training candidates, so a scene seen from far
+        # away (no ground near the sensor) cannot put the prior kilometres off.
+        mean = None
+        if anchor is not None and p.prior_mean_at_anchor and training.any():
+            seen = grid.candidate_z[training]
+            mean = float(np.clip(anchor.height_m, seen.min(), seen.max()))
         gp = FrameGP(grid.candidate_r, grid.candidate_z, d, training, anchor=anchor,
-                     backend=self._backend)
+                     backend=self._backend, mean=mean)
         gp, sol, theta, outliers = self._fit_robustly(gp, stats)
         self._theta = Hyperparameters(*(float(v) for v in theta))
         trained = gp.to_grid(gp.valid, False) & ~outliers
@@ -436,6 +459,16 @@ class GroundSegmenter:
         stats['training_candidates'] = int(trained.sum())
         default_height = anchor.height_m if anchor is not None else gp.mean
         return _GroundModel(gp, sol, theta, trained, outliers, d, default_height)
+
+    def _threshold_at_bin_edges(self, edges, mean, std):
+        """Ground threshold (m): a scalar, or (M, N + 1) at the bin edges when it varies."""
+        p = self._params
+        threshold = p.ground_threshold_m
+        if p.ground_threshold_std_factor > 0:
+            threshold = threshold + p.ground_threshold_std_factor * std
+        if p.use_cross_slope_threshold:
+            threshold = threshold + additions.cross_segment_rise(edges, mean, p.cross_slope_max)
+        return np.minimum(threshold, p.max_threshold_m)
 
     # ------------------------------------------------------------------------------------
     def segment(self, points: np.ndarray, details: bool = False) -> SegmentationResult:
@@ -500,6 +533,9 @@ class GroundSegmenter:
                               max_distance_m=p.line_max_distance_m, max_gap_m=p.line_max_gap_m,
                               max_density_jump=p.line_max_density_jump,
                               compiled=self._backend == 'numba')
+        if p.use_chord_slope_for_single_points:
+            lines = dataclasses.replace(lines, slope=additions.one_point_line_slopes(
+                lines.slope, grid.candidate_r, grid.candidate_z))
         training = self._training_candidates(grid, lines, stats)
         timings['lines'] = (time.perf_counter() - t) * 1e3
 
@@ -516,12 +552,11 @@ class GroundSegmenter:
 
         t = time.perf_counter()
         z_hat = _interpolate_at_points(mean_full, grid)
-        if p.ground_threshold_std_factor > 0:
-            std = _interpolate_at_points(std_full, grid)
-            threshold = np.minimum(p.ground_threshold_m + p.ground_threshold_std_factor * std,
-                                   p.max_threshold_m)
+        edge_threshold = self._threshold_at_bin_edges(edges, mean_full, std_full)
+        if np.ndim(edge_threshold):
+            threshold = _interpolate_at_points(edge_threshold, grid)
         else:
-            threshold = p.ground_threshold_m  # validate(): never above max_threshold_m
+            threshold = edge_threshold
         ground_v = z - z_hat <= threshold
         timings['label'] = (time.perf_counter() - t) * 1e3
 

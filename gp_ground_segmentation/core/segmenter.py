@@ -292,8 +292,8 @@ class GroundSegmenter:
 
     def warm_up(self) -> None:
         """Compile (or load from numba's cache) the GP step, the grid pass, the line growing loop,
-        the structure test's look-ups and the surface's ground offsets now, not inside the first
-        frame (see gp_compiled.py for where the cache lives).
+        the plateau state machine, the structure test's look-ups and the surface's ground
+        offsets now, not inside the first frame (see gp_compiled.py for where the cache lives).
 
         On failure this segmenter switches to numpy and the error is raised for the caller to
         report; segmenting still works.
@@ -312,10 +312,13 @@ class GroundSegmenter:
                                         np.zeros(2, dtype), np.array([True, False]),
                                         cell_m=0.03, cell_deg=0.25, rise_m=0.2,
                                         max_height_m=0.7, step_m=0.05)
-            # the line growing loop and the surface's ground offsets (float64 only)
-            extract_lines(grid.candidate_r, grid.candidate_z, grid.density, variance_ratio=1.0,
-                          max_slope=1.0, max_distance_m=1.0, max_gap_m=1.0,
-                          max_density_jump=2.0)
+            # the line growing loop, the plateau state machine and the surface's ground
+            # offsets (float64 only)
+            lines = extract_lines(grid.candidate_r, grid.candidate_z, grid.density,
+                                  variance_ratio=1.0, max_slope=1.0, max_distance_m=1.0,
+                                  max_gap_m=1.0, max_density_jump=2.0)
+            additions.elevated_plateaus(grid.candidate_r, grid.candidate_z, lines.slope_before,
+                                        step_up_m=0.3, max_slope=1.0, max_gap_m=1.0)
             ground_offsets(np.zeros(1), np.zeros(1, np.int32), np.zeros(1, np.int32), 1, 1, 0.1)
 
     @property

@@ -491,6 +491,18 @@ def stalls_text(r: dict) -> str:
             'the machine stalled then')
 
 
+def frames_table(r: dict, extra: dict | None = None) -> str:
+    """Frame counts of a latency run (one row), plus ``extra`` column -> value."""
+    extra = extra or {}
+    return markdown_table(
+        ['published', 'received', 'processed', 'dropped (all / after warm-up)', 'failed',
+         'processed Hz (after warm-up)', 'max slot / queue_size'] + list(extra),
+        [[fmt(r['published']), fmt(r['received_total']), fmt(r['processed_total']),
+          f"{fmt(r['dropped_total'])} / {fmt(r['dropped'])}", fmt(r['failed_total']),
+          fmt(r['processed_hz'], 2), f"{r['max_slot']} / {r['queue_size']}"]
+         + list(extra.values())])
+
+
 def latency_markdown(r: dict) -> str:
     rows = [[stage, fmt(r['stages'][stage][0]), fmt(r['stages'][stage][1]),
              fmt(r['stages'][stage][3]), fmt(r['stages'][stage][2])]
@@ -509,13 +521,7 @@ def latency_markdown(r: dict) -> str:
         '',
         markdown_table(['stage', 'ms median', 'ms p95', 'ms max', 'frames'], rows),
         '',
-        markdown_table(
-            ['published', 'received', 'processed', 'dropped (all / after warm-up)', 'failed',
-             'processed Hz (after warm-up)', 'max slot / queue_size',
-             'sustained 10 Hz, no drops (after warm-up)'],
-            [[fmt(r['published']), fmt(r['received_total']), fmt(r['processed_total']),
-              f"{fmt(r['dropped_total'])} / {fmt(r['dropped'])}", fmt(r['failed_total']),
-              fmt(r['processed_hz'], 2), f"{r['max_slot']} / {r['queue_size']}", verdict]]),
+        frames_table(r, {'sustained 10 Hz, no drops (after warm-up)': verdict}),
         '',
         f"- Target (issue 6): decode + segment + encode <= 35 ms median: measured "
         f"{fmt(med_total)} ms -> {'met' if med_total <= 35.0 else 'NOT met'}; sustains 10 Hz "
@@ -556,12 +562,7 @@ def load_markdown(r: dict) -> str:
         '',
         markdown_table(['stage', 'ms median', 'ms p95', 'ms max', 'frames'], rows),
         '',
-        markdown_table(
-            ['published', 'received', 'processed', 'dropped (all / after warm-up)', 'failed',
-             'processed Hz (after warm-up)', 'max slot / queue_size'],
-            [[fmt(r['published']), fmt(r['received_total']), fmt(r['processed_total']),
-              f"{fmt(r['dropped_total'])} / {fmt(r['dropped'])}", fmt(r['failed_total']),
-              fmt(r['processed_hz'], 2), f"{r['max_slot']} / {r['queue_size']}"]]),
+        frames_table(r),
         '',
         '- Messages received by the subscriber processes (per process, sorted): '
         + '; '.join(f"{t} {', '.join(str(c) for c in received[t])}"

@@ -9,6 +9,7 @@ from gp_ground_segmentation import GroundSegmenter, SegmenterParams
 from gp_ground_segmentation.core.additions import (cross_segment_rise, elevated_plateaus,
                                                    ground_under_sensor, one_point_line_slopes,
                                                    outlier_candidates, steep_line_candidates)
+from gp_ground_segmentation.core.compiled import AVAILABLE as COMPILED
 from scenes.synthetic import make_scene, simulate_scan
 
 NAN = np.nan
@@ -250,8 +251,7 @@ def test_prior_mean_is_the_ground_under_the_vehicle(mixed_scan):
 # --- compiled plateau state machine == numpy reference ---------------------------------------
 
 def _both_plateaus(cand_r, cand_z, slope, **kw):
-    from gp_ground_segmentation.core import additions
-    if additions.numba is None:
+    if not COMPILED:
         pytest.skip('numba not installed')
     kw = dict(PLATEAU, **kw)
     return (elevated_plateaus(cand_r, cand_z, slope, compiled=True, **kw),
@@ -283,18 +283,9 @@ def test_compiled_plateaus_equal_the_numpy_reference_on_random_candidates(
 @pytest.mark.parametrize('source', ['sensors/velodyne_vlp16.pcd',
                                     'kitti_sequnknown_spvnas_000000.bin'])
 def test_compiled_plateaus_equal_the_numpy_reference_on_real_candidates(source):
-    from conftest import DATA
-    from gp_ground_segmentation.core.grid import build_grid
+    from conftest import candidate_grid
     from gp_ground_segmentation.core.lines import extract_lines
-    from gp_ground_segmentation.tools.io import read_points_file
-    if not (DATA / source).exists():
-        pytest.skip(f'{DATA / source} not found')
-    arr = read_points_file(DATA / source)
-    xyz = np.stack([arr['x'], arr['y'], arr['z']], axis=1).astype(np.float64)
-    xyz = xyz[np.isfinite(xyz).all(axis=1) & (np.abs(xyz).sum(axis=1) > 0)]
-    p = SegmenterParams()
-    g = build_grid(*(np.ascontiguousarray(xyz[:, i]) for i in range(3)), p.num_segments,
-                   p.num_bins)
+    g, p = candidate_grid(source)
     lines = extract_lines(g.candidate_r, g.candidate_z, g.density,
                           variance_ratio=p.deming_variance_ratio, max_slope=p.line_max_slope,
                           max_distance_m=p.line_max_distance_m, max_gap_m=p.line_max_gap_m,

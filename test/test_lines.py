@@ -16,6 +16,7 @@ import pytest
 from scipy.optimize import least_squares
 
 from gp_ground_segmentation.core.lines import deming_fit, extract_lines
+from gp_ground_segmentation.core.compiled import AVAILABLE as COMPILED
 
 NAN = np.nan
 KW = dict(variance_ratio=1.0, max_slope=0.7, max_distance_m=0.15, max_gap_m=6.0,
@@ -337,8 +338,7 @@ def _assert_same_lines(a, b):
 
 
 def _both(cand_r, cand_z, density, **kw):
-    from gp_ground_segmentation.core import lines
-    if lines.numba is None:
+    if not COMPILED:
         pytest.skip('numba not installed')
     kw = dict(KW, **kw)
     return (extract_lines(cand_r, cand_z, density, compiled=True, **kw),
@@ -368,22 +368,8 @@ def test_compiled_growing_equals_the_numpy_reference_on_random_candidates(seed):
 @pytest.mark.parametrize('source', ['sensors/velodyne_vlp16.pcd', 'sensors/hesai_xt32.pcd',
                                     'kitti_sequnknown_spvnas_000000.bin', 'mixed'])
 def test_compiled_growing_equals_the_numpy_reference_on_real_candidates(source):
-    from gp_ground_segmentation.core.grid import build_grid
-    from gp_ground_segmentation.core.params import SegmenterParams
-    if source == 'mixed':
-        from scenes import synthetic
-        xyz = np.asarray(synthetic.scan_scene('mixed').points, dtype=np.float64)[:, :3]
-    else:
-        from conftest import DATA
-        from gp_ground_segmentation.tools.io import read_points_file
-        if not (DATA / source).exists():
-            pytest.skip(f'{DATA / source} not found')
-        arr = read_points_file(DATA / source)
-        xyz = np.stack([arr['x'], arr['y'], arr['z']], axis=1).astype(np.float64)
-    xyz = xyz[np.isfinite(xyz).all(axis=1) & (np.abs(xyz).sum(axis=1) > 0)]
-    p = SegmenterParams()
-    g = build_grid(*(np.ascontiguousarray(xyz[:, i]) for i in range(3)), p.num_segments,
-                   p.num_bins)
+    from conftest import candidate_grid
+    g, p = candidate_grid(source)
     compiled, reference = _both(
         g.candidate_r, g.candidate_z, g.density, variance_ratio=p.deming_variance_ratio,
         max_slope=p.line_max_slope, max_distance_m=p.line_max_distance_m,

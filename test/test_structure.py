@@ -11,6 +11,7 @@ import pytest
 
 from gp_ground_segmentation import GroundSegmenter, SegmenterParams
 from gp_ground_segmentation.core.structure import vertical_structure_mask
+from gp_ground_segmentation.core.compiled import AVAILABLE as COMPILED
 
 P = SegmenterParams()
 KW = dict(cell_m=P.structure_cell_m, cell_deg=P.structure_cell_deg, rise_m=P.structure_rise_m,
@@ -133,8 +134,7 @@ def test_switch_and_stage_timing_in_the_segmenter():
 @pytest.mark.parametrize('dtype', [np.float32, np.float64])
 @pytest.mark.parametrize('seed', range(3))
 def test_compiled_pass_equals_the_numpy_reference(seed, dtype):
-    from gp_ground_segmentation.core import structure
-    if structure.numba is None:
+    if not COMPILED:
         pytest.skip('numba not installed')
     rng = np.random.default_rng(seed)
     # a full turn (azimuth wrap), near and far rings, walls, boxes and posts of every height,
@@ -165,10 +165,9 @@ def test_compiled_pass_equals_the_numpy_reference(seed, dtype):
 @pytest.mark.parametrize('dtype', [np.float32, np.float64])
 def test_compiled_pass_equals_the_numpy_reference_on_a_real_scan(dtype):
     from conftest import DATA
-    from gp_ground_segmentation.core import structure
     from gp_ground_segmentation.tools.io import read_points_file
     path = DATA / 'kitti_sequnknown_spvnas_000000.bin'
-    if structure.numba is None or not path.exists():
+    if not COMPILED or not path.exists():
         pytest.skip('numba or the scan is missing')
     arr = read_points_file(path)
     x, y, z = (np.ascontiguousarray(arr[c], dtype=dtype) for c in 'xyz')

@@ -29,12 +29,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .compiled import kernel, run
 from .lines import relative_to_first
-
-try:  # numba is a regular dependency, but the package must still work without it
-    import numba
-except ImportError:  # pragma: no cover - the numpy reference is used instead
-    numba = None
 
 
 def steep_line_candidates(slope: np.ndarray, max_slope: float) -> np.ndarray:
@@ -83,12 +79,7 @@ def elevated_plateaus(cand_r: np.ndarray, cand_z: np.ndarray, slope_before: np.n
         last_z = start_height_m - z0
     args = (present, rr, zz, np.asarray(slope_before, dtype=np.float64), last_r, last_z,
             float(step_up_m), float(max_slope), float(max_gap_m), bool(end_on_drop))
-    if compiled and _plateaus_compiled is not None:
-        try:
-            return _plateaus_compiled(*args)
-        except Exception:  # noqa: BLE001 - numba compile/runtime failure: the reference
-            pass
-    return _plateaus_numpy(*args)
+    return run(compiled, _plateaus_compiled, _plateaus_numpy, *args)
 
 
 def _plateaus_numpy(present, rr, zz, slope_before, last_r, last_z, step_up_m, max_slope,
@@ -162,8 +153,7 @@ def _plateaus_loop(present, rr, zz, slope_before, last_r, last_z, step_up_m, max
     return elevated
 
 
-_plateaus_compiled = (numba.njit(cache=True, nogil=True, error_model='numpy')(_plateaus_loop)
-                      if numba is not None else None)
+_plateaus_compiled = kernel(_plateaus_loop, error_model='numpy')
 
 
 def ground_under_sensor(cand_z: np.ndarray, training: np.ndarray, line_id: np.ndarray,

@@ -39,10 +39,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-try:  # numba is a regular dependency, but the package must still work without it
-    import numba
-except ImportError:  # pragma: no cover - the numpy reference is used instead
-    numba = None
+from .compiled import AVAILABLE, kernel, run
 
 
 @dataclass
@@ -116,15 +113,8 @@ def extract_lines(cand_r: np.ndarray, cand_z: np.ndarray, density: np.ndarray, *
     args = (present, rr, zz, density, moments, float(variance_ratio), float(max_slope),
             float(max_distance_m), float(max_gap_m), 1.0 / max_density_jump,
             float(max_density_jump))
-    grown = None
-    if compiled and _grow_lines_compiled is not None:
-        try:
-            grown = _grow_lines_compiled(*args)
-        except Exception:  # noqa: BLE001 - numba compile/runtime failure: the reference
-            grown = None
-    if grown is None:
-        grown = _grow_lines_numpy(*args)
-    line_id, is_critical, slope_before, next_line = grown
+    line_id, is_critical, slope_before, next_line = run(compiled, _grow_lines_compiled,
+                                                        _grow_lines_numpy, *args)
 
     # Final fit of every line from its members (bincount over line ids).
     ids = line_id[present]
@@ -281,7 +271,6 @@ def _grow_lines_loop(present, rr, zz, density, moments, variance_ratio, max_slop
 
 
 _grow_lines_compiled = None
-if numba is not None:
-    _deming_scalar = numba.njit(cache=True, nogil=True, error_model='numpy')(_deming_scalar)
-    _grow_lines_compiled = numba.njit(cache=True, nogil=True, error_model='numpy')(
-        _grow_lines_loop)
+if AVAILABLE:  # the loop calls the compiled scalar fit
+    _deming_scalar = kernel(_deming_scalar, error_model='numpy')
+    _grow_lines_compiled = kernel(_grow_lines_loop, error_model='numpy')

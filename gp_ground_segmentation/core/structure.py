@@ -33,10 +33,7 @@ from __future__ import annotations
 
 import numpy as np
 
-try:  # numba is a regular dependency, but the package must still work without it
-    import numba
-except ImportError:  # pragma: no cover - the numpy reference is used instead
-    numba = None
+from .compiled import kernel, run
 
 __all__ = ['vertical_structure_mask']
 
@@ -110,13 +107,7 @@ def vertical_structure_mask(x: np.ndarray, y: np.ndarray, z: np.ndarray,
     # the step in z's precision, as numpy compares a float32 difference with a Python float
     args = (az_col, ring_col, z[column], az_cand, ring_cand, z[cand], n_az, width,
             z.dtype.type(step_m))
-    hit = None
-    if compiled and _structure_hits_compiled is not None:
-        try:
-            hit = _structure_hits_compiled(*args)
-        except Exception:  # noqa: BLE001 - numba compile/runtime failure: the reference
-            hit = None
-    out[cand] = _structure_hits_numpy(*args) if hit is None else hit
+    out[cand] = run(compiled, _structure_hits_compiled, _structure_hits_numpy, *args)
     return out
 
 
@@ -164,5 +155,4 @@ def _structure_hits_loop(az_col, ring_col, z_col, az_cand, ring_cand, z_cand, n_
     return hit
 
 
-_structure_hits_compiled = (numba.njit(cache=True, nogil=True)(_structure_hits_loop)
-                            if numba is not None else None)
+_structure_hits_compiled = kernel(_structure_hits_loop)

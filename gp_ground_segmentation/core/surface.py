@@ -42,12 +42,8 @@ from typing import Callable, Optional
 
 import numpy as np
 
+from .compiled import kernel
 from .grid import segment_of
-
-try:  # numba is a regular dependency, but the package must still work without it
-    import numba
-except ImportError:  # pragma: no cover - the numpy reference is used instead
-    numba = None
 
 # Tolerance (in bins) of height_at's range test: round-off between the grid's r and the one
 # recomputed here must not drop a point at r_min or r_max.
@@ -245,5 +241,4 @@ def _edge_means(residual, segment, bin_index, m, n, centre, low, high):
     return out
 
 
-_edge_means_compiled = (numba.njit(cache=True, nogil=True)(_edge_means) if numba is not None
-                        else None)
+_edge_means_compiled = kernel(_edge_means)

@@ -182,30 +182,30 @@ class _GroundModel(NamedTuple):
     default_height: float  # ground height of segments without a training point (m)
 
 
-def _ground_at_bin_edges(model: _GroundModel, edges: np.ndarray, need_std: bool,
-                         d_star: Optional[np.ndarray] = None):
+def _ground_at_bin_edges(model: _GroundModel, edges: np.ndarray, need_std: bool):
     """GP posterior mean (and std) at the (M, N + 1) bin ``edges`` (stage ``predict``).
 
     Segments outside the GP batch keep ``model.default_height`` and the prior std sigma_f.
-    Returns (mean, std, d at the edges of the GP's segments) with (M, N + 1) arrays; a
-    ``d_star`` from an earlier call on the same model is reused rather than recomputed.
+    Returns (mean, std, d at the edges of the GP's segments, k* there) with (M, N + 1) mean
+    and std; k* (``FrameGP.predict``'s kernel) is None unless the compiled backend ran.
     """
     mean = np.full(edges.shape, model.default_height)
     std = np.full(edges.shape, model.theta[0])
+    d_star = k_star = None
     if model.solution is not None:
         rows = model.gp.segments
-        if d_star is None:
-            d_fill = _fill_along_rows(model.length_factor, model.training)
-            d_star = np.concatenate([d_fill, d_fill[:, -1:]], axis=1)[rows]
-        mean_b, std_b = model.gp.predict(model.solution, edges[rows], d_star, with_std=need_std)
+        d_fill = _fill_along_rows(model.length_factor, model.training)
+        d_star = np.concatenate([d_fill, d_fill[:, -1:]], axis=1)[rows]
+        mean_b, std_b, k_star = model.gp.predict(model.solution, edges[rows], d_star,
+                                                 with_std=need_std, return_kernel=True)
         mean[rows] = mean_b
         if need_std:
             std[rows] = std_b
-    return mean, std, d_star
+    return mean, std, d_star, k_star
 
 
 def _ground_surface(model: _GroundModel, grid: RadialGrid, edges, mean, std, point_z, ground,
-                    ground_height, valid_index, d_star) -> GroundSurface:
+                    ground_height, valid_index, k_star) -> GroundSurface:
     """The frame's GroundSurface; ``std`` None: its z_std is computed when first read.
 
     The deferred computations keep the model, the edges, the (N,) result arrays and the points'
@@ -215,8 +215,12 @@ def _ground_surface(model: _GroundModel, grid: RadialGrid, edges, mean, std, poi
     m_count, n_bins = grid.num_segments, grid.num_bins
 
     def compute_std():
-        with _single_threaded_blas(), np.errstate(over='ignore'):
-            return _ground_at_bin_edges(model, edges, True, d_star)[1]
+        if k_star is None:  # numpy backend: the prediction again, with the std
+            with _single_threaded_blas(), np.errstate(over='ignore'):
+                return _ground_at_bin_edges(model, edges, need_std=True)[1]
+        std = np.full(edges.shape, model.theta[0])  # from the predict stage's k*: cheaper
+        std[model.gp.segments] = model.gp.std_from_kernel(model.solution, k_star)
+        return std
 
     def compute_offset():
         on_ground = ground[valid_index]
@@ -550,7 +554,7 @@ class GroundSegmenter:
         t = time.perf_counter()
         need_std = details or p.ground_threshold_std_factor > 0
         edges = grid.bin_edges()
-        mean_full, std_full, d_star = _ground_at_bin_edges(model, edges, need_std)
+        mean_full, std_full, d_star, k_star = _ground_at_bin_edges(model, edges, need_std)
         timings['predict'] = (time.perf_counter() - t) * 1e3
 
         t = time.perf_counter()
@@ -586,6 +590,6 @@ class GroundSegmenter:
                 np.where(grid.has_candidate, theta[1] * model.length_factor, np.nan), edges,
                 mean_full, std_full, threshold, model.gp, model.solution, d_star, feet)
         surface = _ground_surface(model, grid, edges, mean_full, std_full if need_std else None,
-                                  xyz[:, 2], ground, height, valid_index, d_star)
+                                  xyz[:, 2], ground, height, valid_index, k_star)
         return SegmentationResult(ground, valid, height, self._theta, timings, stats, extra,
                                   surface, xyz[:, 2])

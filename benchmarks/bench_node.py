@@ -71,7 +71,7 @@ STAGES = ('decode', 'segment', 'encode', 'total')
 # checks), i.e. everything the node adds to segment() before publishing; node_total = handoff +
 # total + publish (subscription callback to published).
 LOAD_STAGES = ('handoff', 'decode', 'segment', 'encode', 'surface', 'publish', 'around',
-               'total', 'node_total')
+               'around_without_surface', 'total', 'node_total')
 MB = 1024.0 * 1024.0
 
 
@@ -250,8 +250,12 @@ def with_sums(timing: dict) -> dict:
     node's stages."""
     if 'handoff' not in timing or 'publish' not in timing:
         return timing
-    return dict(timing, around=timing['handoff'] + timing['total'] - timing['segment'],
-                node_total=timing['handoff'] + timing['total'] + timing['publish'])
+    around = timing['handoff'] + timing['total'] - timing['segment']
+    out = dict(timing, around=around,
+               node_total=timing['handoff'] + timing['total'] + timing['publish'])
+    if 'surface' in timing:  # what the node adds with publish_ground_surface off
+        out['around_without_surface'] = around - timing['surface']
+    return out
 
 
 def stage_stats(timings: list, stages=STAGES) -> dict:
@@ -557,8 +561,8 @@ def load_markdown(r: dict) -> str:
         'to worker), decode, segment, encode (both subset clouds and the surface cloud), '
         'surface (its part of encode), publish (the three publish calls); total = decode + '
         'segment + encode + input checks (process_cloud); around = handoff + total - segment '
-        '(everything around segment() but the publish calls); node_total = handoff + total + '
-        'publish. Per-frame sums, then percentiles.',
+        '(everything around segment() but the publish calls); around_without_surface = around - '
+        'surface; node_total = handoff + total + publish. Per-frame sums, then percentiles.',
         '',
         markdown_table(['stage', 'ms median', 'ms p95', 'ms max', 'frames'], rows),
         '',

@@ -52,6 +52,8 @@ INDOOR_MOUNT_M = 0.5  # the sensors/ scans: floor at z = -0.4 to -0.6 m (data RE
 LOW_MOUNT_M, LOW_MOUNT_MIN_RANGE_M = 1.0, 0.3  # as bench_quality.peer_settings
 # beams -> firings per revolution; about half the rays return: 20k, 33k, 66k, 94k points
 SYNTHETIC_AZIMUTH_STEPS = {16: 2500, 32: 1400, 64: 2048, 128: 1500}
+# segment()'s stages in the table (medians over the warm calls), in pipeline order
+STAGE_COLUMNS = ('grid', 'lines', 'gp_fit', 'predict', 'label', 'structure')
 
 
 def load_clouds() -> list:
@@ -176,13 +178,13 @@ def main(argv=None):
         row = [name, kind, f'{len(pts):,}', common.fmt(gp, 2), common.fmt(res['gp']['p95'], 2),
                common.fmt(pw, 2), common.fmt(gp / pw, 2) if pw == pw else 'n/a',
                ' / '.join(common.fmt(st.get(k, float('nan')), 2)
-                          for k in ('grid', 'lines', 'gp_fit', 'predict', 'label')),
+                          for k in STAGE_COLUMNS),
                str(res['stats'].get('training_candidates', '')),
                common.fmt(100 * res['ground_fraction'], 1)]
         rows.append(row)
         print(' | '.join(row), flush=True)
     headers = ['cloud', 'kind', 'points', 'GP median ms', 'GP p95 ms', 'Patchwork++ median ms',
-               'GP / PW++', 'stages ms: grid / lines / gp_fit / predict / label',
+               'GP / PW++', 'stages ms: ' + ' / '.join(STAGE_COLUMNS),
                'GP training points', 'GP ground %']
     text = ['## Every sensor: this project vs Patchwork++ per scan (`bench_sensors.py`)', '',
             common.machine_markdown(common.command_line()), '',

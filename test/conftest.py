@@ -190,6 +190,14 @@ def status_values(status):
     return {kv.key: kv.value for kv in status.values}
 
 
+def compiled_ready(function, *args, **kwargs):
+    """Call ``function`` once, then wait until the kernels it queued are compiled (core/
+    compiled.py compiles in the background and meanwhile runs the numpy reference)."""
+    from gp_ground_segmentation.core import compiled
+    function(*args, **kwargs)
+    assert compiled.wait(120.0), 'background compilation did not finish'
+
+
 def candidate_grid(source: str):
     """(RadialGrid at the default M x N, SegmenterParams()) of a scan under DATA (a .pcd or
     KITTI .bin path relative to it) or of the synthetic scene ``source``; skips when the file

@@ -254,6 +254,8 @@ def _both_plateaus(cand_r, cand_z, slope, **kw):
     if not COMPILED:
         pytest.skip('numba not installed')
     kw = dict(PLATEAU, **kw)
+    from conftest import compiled_ready
+    compiled_ready(elevated_plateaus, cand_r, cand_z, slope, compiled=True, **kw)
     return (elevated_plateaus(cand_r, cand_z, slope, compiled=True, **kw),
             elevated_plateaus(cand_r, cand_z, slope, compiled=False, **kw))
 

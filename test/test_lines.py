@@ -341,6 +341,8 @@ def _both(cand_r, cand_z, density, **kw):
     if not COMPILED:
         pytest.skip('numba not installed')
     kw = dict(KW, **kw)
+    from conftest import compiled_ready
+    compiled_ready(extract_lines, cand_r, cand_z, density, compiled=True, **kw)
     return (extract_lines(cand_r, cand_z, density, compiled=True, **kw),
             extract_lines(cand_r, cand_z, density, compiled=False, **kw))
 

@@ -12,6 +12,7 @@ import pytest
 from gp_ground_segmentation import GroundSegmenter, SegmenterParams
 from gp_ground_segmentation.core.structure import vertical_structure_mask
 from gp_ground_segmentation.core.compiled import AVAILABLE as COMPILED
+from conftest import compiled_ready
 
 P = SegmenterParams()
 KW = dict(cell_m=P.structure_cell_m, cell_deg=P.structure_cell_deg, rise_m=P.structure_rise_m,
@@ -156,6 +157,7 @@ def test_compiled_pass_equals_the_numpy_reference(seed, dtype):
     x, y, z = (np.ascontiguousarray(points[:, i]) for i in range(3))
     gz = np.zeros_like(z)
     cand = z - gz <= P.ground_threshold_m
+    compiled_ready(vertical_structure_mask, x, y, z, gz, cand, **KW)
     compiled = vertical_structure_mask(x, y, z, gz, cand, **KW)
     reference = vertical_structure_mask(x, y, z, gz, cand, **KW, compiled=False)
     assert 100 < np.count_nonzero(reference) < np.count_nonzero(cand)
@@ -175,6 +177,7 @@ def test_compiled_pass_equals_the_numpy_reference_on_a_real_scan(dtype):
         np.c_[x, y, z])
     gz = result.ground_height.astype(dtype)
     cand = result.ground_mask
+    compiled_ready(vertical_structure_mask, x, y, z, gz, cand, **KW)
     compiled = vertical_structure_mask(x, y, z, gz, cand, **KW)
     reference = vertical_structure_mask(x, y, z, gz, cand, **KW, compiled=False)
     assert np.count_nonzero(reference) > 1000

@@ -6,6 +6,7 @@ import pytest
 
 from gp_ground_segmentation import GroundSegmenter, SegmenterParams
 from gp_ground_segmentation.core.compiled import AVAILABLE as COMPILED
+from conftest import compiled_ready
 from scenes import synthetic
 
 
@@ -65,6 +66,7 @@ def test_ground_offsets_compiled_equals_the_numpy_reference(seed):
     residual = rng.normal(0.0, 0.05, size) + rng.choice([0.0, 3.0, -2.0], size, p=[.8, .1, .1])
     segment = rng.integers(0, m - 2, size).astype(np.int32)
     bins = rng.integers(0, n - 1, size).astype(np.int32)
+    compiled_ready(surface.ground_offsets, residual, segment, bins, m, n, 0.05)
     compiled = surface.ground_offsets(residual, segment, bins, m, n, 0.05)
     reference = surface.ground_offsets(residual, segment, bins, m, n, 0.05, compiled=False)
     assert np.array_equal(compiled, reference)  # same sums in the same order: bit-identical
@@ -79,6 +81,7 @@ def test_ground_offsets_compiled_equals_the_numpy_reference_on_a_scan(ramp):
     residual = points[ground, 2] - result.ground_height[ground]
     seg = surface.segment_of(points[ground, 0], points[ground, 1], grid_args[0])
     bins = np.arange(residual.size, dtype=np.int32) % grid_args[1]
+    compiled_ready(surface.ground_offsets, residual, seg, bins, *grid_args, 0.03)
     compiled = surface.ground_offsets(residual, seg, bins, *grid_args, 0.03)
     reference = surface.ground_offsets(residual, seg, bins, *grid_args, 0.03, compiled=False)
     assert residual.size > 10000 and np.array_equal(compiled, reference)

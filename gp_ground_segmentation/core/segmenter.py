@@ -70,7 +70,7 @@ import numpy as np
 from threadpoolctl import ThreadpoolController
 
 from . import additions
-from . import gp_compiled
+from . import compiled, gp_compiled
 from .gp import FrameGP, GPSolution, GroundAnchor, length_scale_factors, resolve_backend
 from .grid import RadialGrid, build_grid, relative_density
 from .lines import LineSegments, extract_lines
@@ -81,6 +81,9 @@ from .surface import GroundSurface, ground_offsets
 
 _OUTLIER_NOISE_VAR = 1e4  # m^2: a rejected candidate's noise variance (std 100 m)
 _blas = None  # threadpoolctl controller, made on first use (after scipy has loaded its BLAS)
+# warm_up() waits this long (s) for the background compilations: loading them from numba's
+# cache takes ~0.1 s; a first compilation (~4 s on 2 cores) goes on while frames use numpy
+_BACKGROUND_WAIT_S = 0.5
 
 
 def _single_threaded_blas():
@@ -295,9 +298,11 @@ class GroundSegmenter:
         return self._backend
 
     def warm_up(self) -> None:
-        """Compile (or load from numba's cache) the GP step, the grid pass, the line growing loop,
-        the plateau state machine, the structure test's look-ups and the surface's ground
-        offsets now, not inside the first frame (see gp_compiled.py for where the cache lives).
+        """Compile (or load from numba's cache) the GP step now, not inside the first frame, and
+        have the stages with a bit-identical numpy twin (grid pass, line growing, plateau state
+        machine, structure look-ups, surface offsets) compiled in the background
+        (core/compiled.py; up to _BACKGROUND_WAIT_S is waited for them, enough to load them from
+        the cache). See gp_compiled.py for where the cache lives.
 
         On failure this segmenter switches to numpy and the error is raised for the caller to
         report; segmenting still works.
@@ -324,6 +329,9 @@ class GroundSegmenter:
             additions.elevated_plateaus(grid.candidate_r, grid.candidate_z, lines.slope_before,
                                         step_up_m=0.3, max_slope=1.0, max_gap_m=1.0)
             ground_offsets(np.zeros(1), np.zeros(1, np.int32), np.zeros(1, np.int32), 1, 1, 0.1)
+            # These stages compile in the background (core/compiled.py); loading them from
+            # numba's cache takes ~0.1 s, so wait that long, not the ~4 s of a first compile.
+            compiled.wait(_BACKGROUND_WAIT_S)
 
     @property
     def hyperparameters(self) -> Hyperparameters:

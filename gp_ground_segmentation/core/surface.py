@@ -42,7 +42,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from .compiled import kernel
+from .compiled import kernel, run
 from .grid import segment_of
 
 # Tolerance (in bins) of height_at's range test: round-off between the grid's r and the one
@@ -202,10 +202,15 @@ def ground_offsets(residual, segment, bin_index, num_segments: int, num_bins: in
         return np.zeros((m, n + 1))
     centre = float(np.median(residual))
     band = 3.0 * float(noise_std)
-    if compiled and _edge_means_compiled is not None and np.isfinite(residual).all():
-        return _edge_means_compiled(residual, np.asarray(segment), np.asarray(bin_index), m, n,
-                                    centre, centre - band, centre + band)
-    clipped = np.clip(residual, centre - band, centre + band)
+    # the compiled pass assumes finite residuals (np.clip and min/max differ on NaN)
+    return run(compiled and bool(np.isfinite(residual).all()), _edge_means_compiled,
+               _edge_means_numpy, residual, np.asarray(segment), np.asarray(bin_index), m, n,
+               centre, centre - band, centre + band)
+
+
+def _edge_means_numpy(residual, segment, bin_index, m, n, centre, low, high):
+    """The numpy reference of :func:`_edge_means`."""
+    clipped = np.clip(residual, low, high)
     key = np.asarray(segment, np.intp) * n + np.asarray(bin_index, np.intp)
     sums = np.bincount(key, weights=clipped, minlength=m * n).reshape(m, n)
     counts = np.bincount(key, minlength=m * n).reshape(m, n).astype(np.float64)

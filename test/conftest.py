@@ -198,6 +198,17 @@ def compiled_ready(function, *args, **kwargs):
     assert compiled.wait(120.0), 'background compilation did not finish'
 
 
+def compiled_and_reference(function, *args, **kwargs):
+    """(function(..., compiled=True) once its kernel is compiled, function(..., compiled=False));
+    skips without numba."""
+    from gp_ground_segmentation.core import compiled
+    if not compiled.AVAILABLE:
+        pytest.skip('numba not installed')
+    compiled_ready(function, *args, compiled=True, **kwargs)
+    return (function(*args, compiled=True, **kwargs),
+            function(*args, compiled=False, **kwargs))
+
+
 def candidate_grid(source: str):
     """(RadialGrid at the default M x N, SegmenterParams()) of a scan under DATA (a .pcd or
     KITTI .bin path relative to it) or of the synthetic scene ``source``; skips when the file

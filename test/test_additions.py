@@ -9,7 +9,6 @@ from gp_ground_segmentation import GroundSegmenter, SegmenterParams
 from gp_ground_segmentation.core.additions import (cross_segment_rise, elevated_plateaus,
                                                    ground_under_sensor, one_point_line_slopes,
                                                    outlier_candidates, steep_line_candidates)
-from gp_ground_segmentation.core.compiled import AVAILABLE as COMPILED
 from scenes.synthetic import make_scene, simulate_scan
 
 NAN = np.nan
@@ -251,13 +250,9 @@ def test_prior_mean_is_the_ground_under_the_vehicle(mixed_scan):
 # --- compiled plateau state machine == numpy reference ---------------------------------------
 
 def _both_plateaus(cand_r, cand_z, slope, **kw):
-    if not COMPILED:
-        pytest.skip('numba not installed')
-    kw = dict(PLATEAU, **kw)
-    from conftest import compiled_ready
-    compiled_ready(elevated_plateaus, cand_r, cand_z, slope, compiled=True, **kw)
-    return (elevated_plateaus(cand_r, cand_z, slope, compiled=True, **kw),
-            elevated_plateaus(cand_r, cand_z, slope, compiled=False, **kw))
+    from conftest import compiled_and_reference
+    return compiled_and_reference(elevated_plateaus, cand_r, cand_z, slope,
+                                  **dict(PLATEAU, **kw))
 
 
 @pytest.mark.parametrize('end_on_drop', [True, False])

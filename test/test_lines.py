@@ -16,7 +16,6 @@ import pytest
 from scipy.optimize import least_squares
 
 from gp_ground_segmentation.core.lines import deming_fit, extract_lines
-from gp_ground_segmentation.core.compiled import AVAILABLE as COMPILED
 
 NAN = np.nan
 KW = dict(variance_ratio=1.0, max_slope=0.7, max_distance_m=0.15, max_gap_m=6.0,
@@ -338,13 +337,8 @@ def _assert_same_lines(a, b):
 
 
 def _both(cand_r, cand_z, density, **kw):
-    if not COMPILED:
-        pytest.skip('numba not installed')
-    kw = dict(KW, **kw)
-    from conftest import compiled_ready
-    compiled_ready(extract_lines, cand_r, cand_z, density, compiled=True, **kw)
-    return (extract_lines(cand_r, cand_z, density, compiled=True, **kw),
-            extract_lines(cand_r, cand_z, density, compiled=False, **kw))
+    from conftest import compiled_and_reference
+    return compiled_and_reference(extract_lines, cand_r, cand_z, density, **dict(KW, **kw))
 
 
 @pytest.mark.parametrize('seed', range(6))

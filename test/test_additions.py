@@ -106,28 +106,41 @@ def test_plateau_starts_from_the_ground_under_the_sensor():
 def test_cross_segment_rise_on_a_plane_rising_across_the_beams():
     """4 segments, edges at r = 10 and 20 m; z_hat of segment m is 0.1 m * m (the ground
     rises 0.1 m per segment); segments wrap, so segment 0 sees segments 3 and 1, segment 3
-    sees 2 and 0."""
+    sees 2 and 0: there the ground falls on one side and rises on the other (a trough and a
+    crest), which is no slope across the segment."""
     edges = np.tile([10.0, 20.0], (4, 1))
     mean = np.repeat(np.arange(4.0) * 0.1, 2).reshape(4, 2)
     got = cross_segment_rise(edges, mean, max_slope=1.0)
-    np.testing.assert_allclose(got, [[0.1, 0.1], [0.1, 0.1], [0.1, 0.1], [0.1, 0.1]])
+    np.testing.assert_allclose(got, [[0.0, 0.0], [0.1, 0.1], [0.1, 0.1], [0.0, 0.0]], atol=1e-12)
     # the cap: max_slope times the segment's arc width 2 pi r / M (= 0.5 * pi * r here):
     # 0.005 * 0.5 * pi * 10 = 0.0785 < 0.1 at r = 10, 0.157 > 0.1 at r = 20
     capped = cross_segment_rise(edges, mean, max_slope=0.005)
-    np.testing.assert_allclose(capped[:, 0], 0.005 * 0.5 * np.pi * 10.0)
-    np.testing.assert_allclose(capped[:, 1], 0.1)
+    np.testing.assert_allclose(capped[1:3, 0], 0.005 * 0.5 * np.pi * 10.0)
+    np.testing.assert_allclose(capped[1:3, 1], 0.1)
+
+
+def test_cross_segment_rise_needs_a_consistent_slope():
+    """One neighbour raised by an obstacle-bent fit, the other level: the ground does not rise
+    across the segment, so the threshold is not widened (half the neighbours' difference
+    would have widened it by 0.15 m). A slope the same on both sides gives the smaller rise."""
+    edges = np.tile([10.0, 20.0], (3, 1))
+    bump = cross_segment_rise(edges, np.array([[0.0, 0.0], [0.3, 0.3], [0.0, 0.0]]), 10.0)
+    np.testing.assert_allclose(bump, 0.0)
+    uneven = cross_segment_rise(edges, np.array([[0.1, 0.1], [0.3, 0.3], [0.0, 0.0]]), 10.0)
+    np.testing.assert_allclose(uneven[0], [0.1, 0.1])  # rises 0.2 ahead and 0.1 behind
 
 
 def test_cross_segment_rise_reads_neighbours_at_the_same_range():
     """Segments have their own bin edges: the neighbour's ground is interpolated at this
     segment's r (and held at its first or last value outside its range)."""
     edges = np.array([[2.0, 10.0], [2.0, 22.0], [6.0, 10.0]])
-    mean = np.array([[0.0, 0.0], [0.0, 2.0], [1.0, 1.0]])
+    mean = np.array([[0.5, 0.5], [0.0, 2.0], [0.6, 0.6]])
     got = cross_segment_rise(edges, mean, max_slope=10.0)
-    # segment 0: neighbours 2 (1.0, held below r = 6) and 1 (0 at r = 2, 0.8 at r = 10)
-    # segment 2: neighbours 1 (0.4 at r = 6, 0.8 at r = 10) and 0 (0)
-    np.testing.assert_allclose(got[0], [0.5, 0.1])
-    np.testing.assert_allclose(got[2], [0.2, 0.4])
+    # segment 0: neighbours 1 (0 at r = 2, 0.8 at r = 10) and 2 (0.6, held below r = 6):
+    # falls 0.5 and 0.1 at r = 2 (rise 0.1), rises 0.3 and falls 0.1 at r = 10 (none)
+    # segment 2: neighbours 0 (0.5) and 1 (0.4 at r = 6, 0.8 at r = 10)
+    np.testing.assert_allclose(got[0], [0.1, 0.0], atol=1e-12)
+    np.testing.assert_allclose(got[2], [0.0, 0.1], atol=1e-12)
 
 
 def test_one_point_lines_get_the_chord_from_the_previous_candidate():

@@ -178,10 +178,10 @@ class SegmenterParams:
     ground_threshold_std_factor: float = _param(
         0.0, 'multiplier of the GP predictive std added to ground_threshold_m', 0.0, 100.0)
     use_cross_slope_threshold: bool = _param(
-        False, 'ours, not the paper\'s: widen the ground threshold by the rise of the predicted '
-        'ground across the segment (from the neighbouring segments at the same r, capped at a '
-        'cross_slope_max slope), so the high side of ground sloping across the beams stays '
-        'ground')
+        True, 'ours, not the paper\'s: widen the ground threshold by the rise of the predicted '
+        'ground across the segment (where the neighbouring segments at the same r rise on one '
+        'side and fall on the other; the smaller step, capped at a cross_slope_max slope), so '
+        'the high side of ground sloping across the beams stays ground')
     cross_slope_max: float = _param(
         0.35, 'largest ground slope across the beams (dz per m of arc) that widens the threshold '
         '(use_cross_slope_threshold); a steeper rise between neighbouring segments is '

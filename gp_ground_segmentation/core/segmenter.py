@@ -23,8 +23,8 @@ marks the paper's steps, [ours] our additions (``additions.py``, each with a ``u
              (N + 1 per segment: a dense N x n kernel against every raw point would cost 100x
              more).
 ``label``    ground height of each point by linear interpolation along r between the bin
-             edges of its segment; ground when z - z_hat <= threshold ([ours, off by
-             default] widened by the ground's rise across the segment,
+             edges of its segment; ground when z - z_hat <= threshold ([ours] widened by
+             the ground's rise across the segment where it slopes across the beams,
              ``use_cross_slope_threshold``).
 ``structure`` (``use_vertical_structure_test``) ground points with a column of returns right
              above them are the feet of walls, fences, cars, trunks and bushes: obstacle

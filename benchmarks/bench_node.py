@@ -18,6 +18,13 @@ Modes:
                 wall time) from the node's own ``ProcessingWindow`` (the numbers its
                 diagnostics summarise), warm-up frames excluded; frames published / received /
                 processed / dropped / failed; whether 10 Hz was sustained with no drops.
+``--subscribers K``  with ``--latency``: K extra subscriber processes (rclpy, each subscribed
+                to ground, obstacles and ground_surface with the node's RELIABLE output QoS, as
+                RViz subscribes), started before the publishing and counting what they receive;
+                the latency table then adds the node's hand-off (slot wait), surface and publish
+                times, the overhead around ``segment()`` and the node total
+                (hand-off + decode + segment + encode + publish). The issue-14 load test is
+                ``--latency --latency-s 60 --subscribers 3``.
 ``--overload``  50 Hz (5x real time) for ``--overload-s`` (60 s): input Hz (published and
                 received), processed Hz, drops as counted by the node and as reported on
                 /diagnostics (with its level), maximum slot occupancy (sampled every 5 ms (and
@@ -30,13 +37,16 @@ Neither mode asserts anything; the figures are printed as markdown and written t
 keeps the other mode's previous sub-section. Without a mode flag both run.
 
     python benchmarks/bench_node.py --latency
+    python benchmarks/bench_node.py --latency --latency-s 60 --subscribers 3
     python benchmarks/bench_node.py --overload
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
+import subprocess
 import sys
 import threading
 import time
@@ -44,8 +54,10 @@ from pathlib import Path
 
 import numpy as np
 
-# An isolated DDS domain on localhost before any rclpy context exists (same rule as the tests).
-os.environ['ROS_DOMAIN_ID'] = str(1 + (os.getpid() + 37) % 100)
+# An isolated DDS domain on localhost before any rclpy context exists (same rule as the tests);
+# a subscriber process (--as-subscriber) keeps the domain its parent gave it.
+if '--as-subscriber' not in sys.argv:
+    os.environ['ROS_DOMAIN_ID'] = str(1 + (os.getpid() + 37) % 100)
 os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
 
 from common import (BAG_DIR, BAG_TOPIC, DATA_DIR, REPO, command_line, fmt,  # noqa: E402
@@ -54,6 +66,12 @@ from common import (BAG_DIR, BAG_TOPIC, DATA_DIR, REPO, command_line, fmt,  # no
 RESULTS = REPO / 'benchmarks' / 'RESULTS.md'
 SECTION = 'bench_node'
 STAGES = ('decode', 'segment', 'encode', 'total')
+# With --subscribers: also the node's own stages and two sums (per frame, then percentiles):
+# around = handoff + total - segment (decode, encode including the surface cloud, and the input
+# checks), i.e. everything the node adds to segment() before publishing; node_total = handoff +
+# total + publish (subscription callback to published).
+LOAD_STAGES = ('handoff', 'decode', 'segment', 'encode', 'surface', 'publish', 'around',
+               'around_without_surface', 'total', 'node_total')
 MB = 1024.0 * 1024.0
 
 
@@ -227,16 +245,90 @@ def drain(bench: NodeBench, timeout_s: float = 10.0) -> None:
         time.sleep(0.01)
 
 
-def stage_stats(timings: list) -> dict:
-    """stage -> (median, p95, n) ms over per-frame timing dicts."""
+def with_sums(timing: dict) -> dict:
+    """A frame's timings plus ``around`` and ``node_total`` (LOAD_STAGES) when it has the
+    node's stages."""
+    if 'handoff' not in timing or 'publish' not in timing:
+        return timing
+    around = timing['handoff'] + timing['total'] - timing['segment']
+    out = dict(timing, around=around,
+               node_total=timing['handoff'] + timing['total'] + timing['publish'])
+    if 'surface' in timing:  # what the node adds with publish_ground_surface off
+        out['around_without_surface'] = around - timing['surface']
+    return out
+
+
+def stage_stats(timings: list, stages=STAGES) -> dict:
+    """stage -> (median, p95, n, max) ms over per-frame timing dicts."""
     out = {}
-    for stage in STAGES:
+    timings = [with_sums(t) for t in timings]
+    for stage in stages:
         v = np.array([t[stage] for t in timings if stage in t], dtype=float)
         v = v[np.isfinite(v)]
         if v.size:
             out[stage] = (float(np.median(v)), float(np.percentile(v, 95)), int(v.size),
                           float(v.max()))
     return out
+
+
+SUBSCRIBER_TOPICS = ('ground', 'obstacles', 'ground_surface')
+
+
+def subscriber_main() -> int:
+    """One extra subscriber process (``--as-subscriber``): counts the messages on the output
+    topics until stdin closes, then prints the counts as one JSON line."""
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from sensor_msgs.msg import PointCloud2
+    sys.path.insert(0, str(REPO))
+    from gp_ground_segmentation.ros.node import OUTPUT_QOS
+
+    rclpy.init()
+    node = rclpy.create_node(f'bench_subscriber_{os.getpid()}')
+    counts = dict.fromkeys(SUBSCRIBER_TOPICS, 0)
+
+    def counter(topic):
+        def on_msg(_msg):
+            counts[topic] += 1
+        return on_msg
+    for topic in SUBSCRIBER_TOPICS:
+        node.create_subscription(PointCloud2, topic, counter(topic), OUTPUT_QOS)
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    threading.Thread(target=executor.spin, daemon=True).start()
+    print('ready', flush=True)
+    sys.stdin.read()  # the parent closes stdin to stop us
+    print(json.dumps(counts), flush=True)
+    # Exit now: a clean rclpy shutdown while the daemon thread still spins aborts with
+    # 'terminate called without an active exception' (noise only; nothing is left to save).
+    os._exit(0)
+
+
+def start_subscribers(bench: NodeBench, count: int) -> list:
+    """``count`` subscriber processes on this process's ROS_DOMAIN_ID, each matched to all
+    three output topics before this returns."""
+    procs = [subprocess.Popen([sys.executable, __file__, '--as-subscriber'],
+                              stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+             for _ in range(count)]
+    for proc in procs:
+        if proc.stdout.readline().strip() != 'ready':
+            raise RuntimeError('a subscriber process did not start')
+    deadline = time.monotonic() + 20.0
+    while time.monotonic() < deadline:
+        if all(bench.peer.count_subscribers(f'/{t}') >= count for t in SUBSCRIBER_TOPICS):
+            return procs
+        time.sleep(0.05)
+    raise RuntimeError('subscriber processes not discovered within 20 s')
+
+
+def stop_subscribers(procs: list) -> list:
+    """Close the processes' stdin; their message counts per topic."""
+    counts = []
+    for proc in procs:
+        out, _ = proc.communicate('', timeout=20.0)
+        lines = [line for line in out.splitlines() if line.startswith('{')]
+        counts.append(json.loads(lines[-1]) if lines else {})
+    return counts
 
 
 def last_status(bench: NodeBench, after: float):
@@ -270,9 +362,12 @@ def status_dict(status) -> dict:
 # ------------------------------------------------------------------------------------ modes
 
 def run_latency(msgs: list, duration_s: float, rate_hz: float = 10.0, warmup_s: float = 3.0,
-                slot_period_s: float = 0.005, executor: str = 'single'):
+                slot_period_s: float = 0.005, executor: str = 'single', subscribers: int = 0):
     bench = NodeBench(queue_size=1, executor=executor)
+    procs = []
     try:
+        procs = start_subscribers(bench, subscribers)
+        load_at_start = os.getloadavg()
         w = bench.node.window
         sampler = Sampler(bench, slot_period_s)
         sampler.start()
@@ -288,9 +383,10 @@ def run_latency(msgs: list, duration_s: float, rate_hz: float = 10.0, warmup_s: 
         sampler.stop()
         status = last_status(bench, t_end)
         snap = w.snapshot()
+        subscriber_counts, procs = stop_subscribers(procs), []
         warm = mark.get('warm', (0, 0, 0, 0))
         timings = snap['timings'][warm[1]:]  # window holds every frame (window >> frames)
-        stats = stage_stats(timings)
+        stats = stage_stats(timings, LOAD_STAGES if subscribers else STAGES)
         received = snap['frames_received'] - warm[0]
         processed = snap['frames_processed'] - warm[1]
         dropped = snap['frames_dropped'] - warm[2]
@@ -310,6 +406,8 @@ def run_latency(msgs: list, duration_s: float, rate_hz: float = 10.0, warmup_s: 
             'status_level': level_name(status),
             'status_message': status.message if status else 'no status',
             'diag': status_dict(status), 'points': msgs[0].width,
+            'subscribers': subscribers, 'subscriber_counts': subscriber_counts,
+            'load_at_start': load_at_start,
         }
         first = snap['timings'][0] if snap['timings'] else {}
         result['cold_ms'] = first.get('total', float('nan'))
@@ -319,6 +417,8 @@ def run_latency(msgs: list, duration_s: float, rate_hz: float = 10.0, warmup_s: 
                                and result['processed_hz'] >= 0.95 * rate_hz)
         return result
     finally:
+        for proc in procs:
+            proc.kill()
         bench.close()
 
 
@@ -395,6 +495,18 @@ def stalls_text(r: dict) -> str:
             'the machine stalled then')
 
 
+def frames_table(r: dict, extra: dict | None = None) -> str:
+    """Frame counts of a latency run (one row), plus ``extra`` column -> value."""
+    extra = extra or {}
+    return markdown_table(
+        ['published', 'received', 'processed', 'dropped (all / after warm-up)', 'failed',
+         'processed Hz (after warm-up)', 'max slot / queue_size'] + list(extra),
+        [[fmt(r['published']), fmt(r['received_total']), fmt(r['processed_total']),
+          f"{fmt(r['dropped_total'])} / {fmt(r['dropped'])}", fmt(r['failed_total']),
+          fmt(r['processed_hz'], 2), f"{r['max_slot']} / {r['queue_size']}"]
+         + list(extra.values())])
+
+
 def latency_markdown(r: dict) -> str:
     rows = [[stage, fmt(r['stages'][stage][0]), fmt(r['stages'][stage][1]),
              fmt(r['stages'][stage][3]), fmt(r['stages'][stage][2])]
@@ -408,17 +520,12 @@ def latency_markdown(r: dict) -> str:
         '',
         f"Per-frame times from the node's ProcessingWindow (what /diagnostics summarises), "
         f"first {r['warmup_s']:g} s excluded (cold theta on the first frame). "
-        '`total` = decode + segment + encode (wall time of `pipeline.process_cloud`).',
+        '`total` = decode + segment + encode + input checks (wall time of '
+        '`pipeline.process_cloud`).',
         '',
         markdown_table(['stage', 'ms median', 'ms p95', 'ms max', 'frames'], rows),
         '',
-        markdown_table(
-            ['published', 'received', 'processed', 'dropped (all / after warm-up)', 'failed',
-             'processed Hz (after warm-up)', 'max slot / queue_size',
-             'sustained 10 Hz, no drops (after warm-up)'],
-            [[fmt(r['published']), fmt(r['received_total']), fmt(r['processed_total']),
-              f"{fmt(r['dropped_total'])} / {fmt(r['dropped'])}", fmt(r['failed_total']),
-              fmt(r['processed_hz'], 2), f"{r['max_slot']} / {r['queue_size']}", verdict]]),
+        frames_table(r, {'sustained 10 Hz, no drops (after warm-up)': verdict}),
         '',
         f"- Target (issue 6): decode + segment + encode <= 35 ms median: measured "
         f"{fmt(med_total)} ms -> {'met' if med_total <= 35.0 else 'NOT met'}; sustains 10 Hz "
@@ -426,6 +533,48 @@ def latency_markdown(r: dict) -> str:
         f"- The first frame (cold start: theta learned with up to 40 likelihood evaluations) "
         f"took {fmt(cold)} ms; frames arriving meanwhile are dropped by the latest-wins slot "
         f"({fmt(r['dropped_total'] - r['dropped'])} dropped during warm-up).",
+        f"- Stalls: {stalls_text(r)}.",
+        f"- Last /diagnostics status: {r['status_level']} ({r['status_message']}).",
+    ])
+
+
+def load_markdown(r: dict) -> str:
+    """The latency table of a run with extra subscriber processes (issue 14's load test)."""
+    rows = [[stage, fmt(r['stages'][stage][0]), fmt(r['stages'][stage][1]),
+             fmt(r['stages'][stage][3]), fmt(r['stages'][stage][2])]
+            for stage in LOAD_STAGES if stage in r['stages']]
+    nan = (float('nan'),) * 4
+    around, node_total = r['stages'].get('around', nan), r['stages'].get('node_total', nan)
+    received = {t: sorted(c.get(t, 0) for c in r['subscriber_counts'])
+                for t in SUBSCRIBER_TOPICS}
+    load = ', '.join(f'{v:.2f}' for v in r['load_at_start'])
+    no_drops = r['dropped'] == 0 and r['failed'] == 0
+    return '\n'.join([
+        f"### Load: {r['rate_hz']:g} Hz for {r['duration_s']:.0f} s, {r['points']:,}-point "
+        f"KITTI frames, {r['subscribers']} extra subscriber processes, {r['executor']}",
+        '',
+        f"Each subscriber process (rclpy, own executor) takes ground, obstacles and "
+        f"ground_surface with the node's RELIABLE output QoS; default node parameters "
+        f"(publish_ground_surface on). Load average (1, 5, 15 min) when the publishing "
+        f"started: {load}; other helpers' jobs shared the 2 cores. First "
+        f"{r['warmup_s']:g} s excluded. Stages: handoff = slot wait (subscription callback "
+        'to worker), decode, segment, encode (both subset clouds and the surface cloud), '
+        'surface (its part of encode), publish (the three publish calls); total = decode + '
+        'segment + encode + input checks (process_cloud); around = handoff + total - segment '
+        '(everything around segment() but the publish calls); around_without_surface = around - '
+        'surface; node_total = handoff + total + publish. Per-frame sums, then percentiles.',
+        '',
+        markdown_table(['stage', 'ms median', 'ms p95', 'ms max', 'frames'], rows),
+        '',
+        frames_table(r),
+        '',
+        '- Messages received by the subscriber processes (per process, sorted): '
+        + '; '.join(f"{t} {', '.join(str(c) for c in received[t])}"
+                    for t in SUBSCRIBER_TOPICS) + '.',
+        f"- Targets (issue 14): no drops after warm-up: {'met' if no_drops else 'NOT met'}; "
+        f"node_total p95 <= 50 ms: {fmt(node_total[1])} ms -> "
+        f"{'met' if node_total[1] <= 50.0 else 'NOT met'}; around segment() <= 3 ms median: "
+        f"{fmt(around[0])} ms -> {'met' if around[0] <= 3.0 else 'NOT met'}.",
         f"- Stalls: {stalls_text(r)}.",
         f"- Last /diagnostics status: {r['status_level']} ({r['status_message']}).",
     ])
@@ -470,7 +619,8 @@ def overload_markdown(r: dict) -> str:
     ])
 
 
-KEYS = ('latency-single', 'latency-multi', 'overload-single', 'overload-multi')
+KEYS = ('latency-single', 'latency-multi', 'load-single', 'load-multi', 'overload-single',
+        'overload-multi')
 
 
 def _sub_blocks(text: str) -> dict:
@@ -518,8 +668,15 @@ def main(argv=None) -> int:
     ap.add_argument('--executor', choices=('single', 'multi', 'both'), default='single',
                     help="single: SingleThreadedExecutor, as the node's main() spins it; multi: "
                          'MultiThreadedExecutor(3), as the test harness does; both: one run each')
+    ap.add_argument('--subscribers', type=int, default=0,
+                    help='with --latency: this many extra subscriber processes on the outputs')
+    ap.add_argument('--as-subscriber', action='store_true', help=argparse.SUPPRESS)
     ap.add_argument('--no-write', action='store_true', help='print only, keep RESULTS.md')
     args = ap.parse_args(argv)
+    if args.as_subscriber:
+        return subscriber_main()
+    if args.subscribers < 0:
+        ap.error(f'--subscribers must be >= 0, got {args.subscribers}')
     if not (args.latency or args.overload):
         args.latency = args.overload = True
     msgs = load_bag_messages()
@@ -530,9 +687,10 @@ def main(argv=None) -> int:
     for executor in executors:
         if args.latency:
             r = run_latency(msgs, args.latency_s, slot_period_s=args.slot_sample_ms / 1e3,
-                            executor=executor)
-            blocks[f'latency-{executor}'] = latency_markdown(r)
-            print(blocks[f'latency-{executor}'] + '\n', flush=True)
+                            executor=executor, subscribers=args.subscribers)
+            key = f"{'load' if args.subscribers else 'latency'}-{executor}"
+            blocks[key] = load_markdown(r) if args.subscribers else latency_markdown(r)
+            print(blocks[key] + '\n', flush=True)
         if args.overload:
             r = run_overload(msgs, args.overload_s, rate_hz=args.overload_hz,
                              slot_period_s=args.slot_sample_ms / 1e3, executor=executor)

@@ -46,12 +46,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import common  # noqa: E402
 
 from gp_ground_segmentation import GroundSegmenter, SegmenterParams  # noqa: E402
+from gp_ground_segmentation.core import compiled  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / 'RESULTS.md'
 INDOOR_MOUNT_M = 0.5  # the sensors/ scans: floor at z = -0.4 to -0.6 m (data README)
 LOW_MOUNT_M, LOW_MOUNT_MIN_RANGE_M = 1.0, 0.3  # as bench_quality.peer_settings
 # beams -> firings per revolution; about half the rays return: 20k, 33k, 66k, 94k points
 SYNTHETIC_AZIMUTH_STEPS = {16: 2500, 32: 1400, 64: 2048, 128: 1500}
+# segment()'s stages in the table (medians over the warm calls), in pipeline order
+STAGE_COLUMNS = ('grid', 'lines', 'gp_fit', 'predict', 'label', 'structure')
 
 
 def load_clouds() -> list:
@@ -100,6 +103,8 @@ def make_patchworkpp(mount_m: float):
 def time_cloud(points: np.ndarray, mount_m: float, runs: int, warmup: int = 3) -> dict:
     """Interleaved warm timings (s) of segment() and Patchwork++ on one cloud."""
     seg = GroundSegmenter(SegmenterParams())
+    seg.warm_up()  # every compiled stage loaded: warm calls, not numba's background loading
+    compiled.wait(60.0)
     pwpp = make_patchworkpp(mount_m)
     gp_s, pw_s, stages = [], [], []
     for i in range(warmup + runs):
@@ -176,13 +181,13 @@ def main(argv=None):
         row = [name, kind, f'{len(pts):,}', common.fmt(gp, 2), common.fmt(res['gp']['p95'], 2),
                common.fmt(pw, 2), common.fmt(gp / pw, 2) if pw == pw else 'n/a',
                ' / '.join(common.fmt(st.get(k, float('nan')), 2)
-                          for k in ('grid', 'lines', 'gp_fit', 'predict', 'label')),
+                          for k in STAGE_COLUMNS),
                str(res['stats'].get('training_candidates', '')),
                common.fmt(100 * res['ground_fraction'], 1)]
         rows.append(row)
         print(' | '.join(row), flush=True)
     headers = ['cloud', 'kind', 'points', 'GP median ms', 'GP p95 ms', 'Patchwork++ median ms',
-               'GP / PW++', 'stages ms: grid / lines / gp_fit / predict / label',
+               'GP / PW++', 'stages ms: ' + ' / '.join(STAGE_COLUMNS),
                'GP training points', 'GP ground %']
     text = ['## Every sensor: this project vs Patchwork++ per scan (`bench_sensors.py`)', '',
             common.machine_markdown(common.command_line()), '',

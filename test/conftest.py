@@ -188,3 +188,45 @@ def ros_harness():
 def status_values(status):
     """DiagnosticStatus KeyValues as a dict (values stay strings)."""
     return {kv.key: kv.value for kv in status.values}
+
+
+def compiled_ready(function, *args, **kwargs):
+    """Call ``function`` once, then wait until the kernels it queued are compiled (core/
+    compiled.py compiles in the background and meanwhile runs the numpy reference)."""
+    from gp_ground_segmentation.core import compiled
+    function(*args, **kwargs)
+    assert compiled.wait(120.0), 'background compilation did not finish'
+
+
+def compiled_and_reference(function, *args, **kwargs):
+    """(function(..., compiled=True) once its kernel is compiled, function(..., compiled=False));
+    skips without numba."""
+    from gp_ground_segmentation.core import compiled
+    if not compiled.AVAILABLE:
+        pytest.skip('numba not installed')
+    compiled_ready(function, *args, compiled=True, **kwargs)
+    return (function(*args, compiled=True, **kwargs),
+            function(*args, compiled=False, **kwargs))
+
+
+def candidate_grid(source: str):
+    """(RadialGrid at the default M x N, SegmenterParams()) of a scan under DATA (a .pcd or
+    KITTI .bin path relative to it) or of the synthetic scene ``source``; skips when the file
+    is missing."""
+    import numpy as np
+    from gp_ground_segmentation.core.grid import build_grid
+    from gp_ground_segmentation.core.params import SegmenterParams
+    from gp_ground_segmentation.tools.io import read_points_file
+    if '.' in source:
+        if not (DATA / source).exists():
+            pytest.skip(f'{DATA / source} not found')
+        arr = read_points_file(DATA / source)
+        xyz = np.stack([arr['x'], arr['y'], arr['z']], axis=1).astype(np.float64)
+    else:
+        from scenes import synthetic
+        xyz = np.asarray(synthetic.scan_scene(source).points, dtype=np.float64)[:, :3]
+    xyz = xyz[np.isfinite(xyz).all(axis=1) & (np.abs(xyz).sum(axis=1) > 0)]
+    params = SegmenterParams()
+    grid = build_grid(*(np.ascontiguousarray(xyz[:, i]) for i in range(3)),
+                      params.num_segments, params.num_bins)
+    return grid, params

@@ -258,3 +258,52 @@ def test_prior_mean_is_the_ground_under_the_vehicle(mixed_scan):
     # FrameGP's default: the median of the training heights, the anchor counted once per segment
     assert median.details.gp.mean != res.details.gp.mean
     assert np.min(z) < median.details.gp.mean < np.max(z)
+
+
+# --- compiled plateau state machine == numpy reference ---------------------------------------
+
+def _both_plateaus(cand_r, cand_z, slope, **kw):
+    from conftest import compiled_and_reference
+    return compiled_and_reference(elevated_plateaus, cand_r, cand_z, slope,
+                                  **dict(PLATEAU, **kw))
+
+
+@pytest.mark.parametrize('end_on_drop', [True, False])
+@pytest.mark.parametrize('start_height_m', [None, -0.1])
+@pytest.mark.parametrize('seed', range(3))
+def test_compiled_plateaus_equal_the_numpy_reference_on_random_candidates(
+        seed, start_height_m, end_on_drop):
+    rng = np.random.default_rng(seed)
+    m, n = 60, 24
+    cand_r = np.sort(rng.uniform(1.0, 40.0, (m, n)), axis=1)
+    cand_r[:, 6] = cand_r[:, 5]  # equal r: the chord's 1e-6 floor
+    # ground with steps up and down of every size, long gaps, and plateaus that come back down
+    steps = rng.choice([0.0, 0.2, 0.5, 1.5, -0.5, -1.5], (m, n), p=[.6, .1, .1, .1, .05, .05])
+    cand_z = 0.03 * cand_r + np.cumsum(steps, axis=1) * rng.choice([1.0, 0.0], (m, 1))
+    cand_z += rng.choice([0.0, 1.0], (m, n), p=[.85, .15]) * rng.uniform(0.3, 2.0, (m, n))
+    empty = rng.random((m, n)) < 0.25
+    cand_r[empty], cand_z[empty] = NAN, NAN
+    slope = np.where(rng.random((m, n)) < 0.3, NAN, rng.normal(0.0, 0.2, (m, n)))
+    compiled, reference = _both_plateaus(cand_r, cand_z, slope, start_height_m=start_height_m,
+                                         end_on_drop=end_on_drop)
+    assert 50 < np.count_nonzero(reference) < np.count_nonzero(~empty) // 2
+    assert np.array_equal(compiled, reference)
+
+
+@pytest.mark.parametrize('source', ['sensors/velodyne_vlp16.pcd',
+                                    'kitti_sequnknown_spvnas_000000.bin'])
+def test_compiled_plateaus_equal_the_numpy_reference_on_real_candidates(source):
+    from conftest import candidate_grid
+    from gp_ground_segmentation.core.lines import extract_lines
+    g, p = candidate_grid(source)
+    lines = extract_lines(g.candidate_r, g.candidate_z, g.density,
+                          variance_ratio=p.deming_variance_ratio, max_slope=p.line_max_slope,
+                          max_distance_m=p.line_max_distance_m, max_gap_m=p.line_max_gap_m,
+                          max_density_jump=p.line_max_density_jump)
+    for start in (None, float(np.nanmedian(g.candidate_z))):
+        compiled, reference = _both_plateaus(
+            g.candidate_r, g.candidate_z, lines.slope_before, step_up_m=p.plateau_step_m,
+            max_slope=p.line_max_slope, max_gap_m=p.line_max_gap_m, start_height_m=start,
+            end_on_drop=p.plateau_ends_on_drop)
+        assert np.count_nonzero(reference) > 10
+        assert np.array_equal(compiled, reference)

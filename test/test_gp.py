@@ -248,6 +248,24 @@ def test_predict_equals_textbook_posterior(seed):
         np.testing.assert_allclose(std[s], sd, rtol=1e-7, atol=1e-7)
 
 
+@pytest.mark.skipif(not gp_compiled.AVAILABLE, reason='numba not installed')
+@pytest.mark.parametrize('seed', range(3))
+def test_std_from_the_kept_kernel_equals_the_std_of_predict(seed):
+    r, z, d, mask = random_problem(50 + seed)
+    gp = FrameGP(r, z, d, mask, backend='numba')
+    rng = np.random.default_rng(seed)
+    sol = gp.solve(random_theta(rng))
+    r_star = rng.uniform(0, 35, (gp.segments.size, 7))
+    d_star = rng.uniform(0.3, 4.0, (gp.segments.size, 7))
+    mean, std = gp.predict(sol, r_star, d_star, with_std=True)
+    mean_only, no_std, k_star = gp.predict(sol, r_star, d_star, with_std=False,
+                                           return_kernel=True)
+    assert no_std is None and k_star.shape == (gp.segments.size, gp.n_max, 7)
+    # the surface's deferred z_std: the same numbers, bit for bit
+    assert np.array_equal(mean_only, mean)
+    assert np.array_equal(gp.std_from_kernel(sol, k_star), std)
+
+
 @pytest.mark.parametrize('seed', range(3))
 def test_loo_residuals_equal_explicit_refits(seed):
     r, z, d, mask = random_problem(40 + seed)

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from gp_ground_segmentation.core.grid import build_grid, relative_density, segment_of
+from conftest import compiled_ready
 
 
 # --------------------------------------------------------------------------------------------
@@ -142,6 +143,8 @@ def test_segment_of_exact_pi_and_range():
 def test_build_grid_matches_brute_force(seed, num_segments, num_bins, compiled):
     xyz = make_cloud(seed, num_segments)
     slices = 1 + seed % 4
+    if compiled:  # the compiled pass, not the reference it runs while compiling
+        compiled_ready(build_grid, *xyz.T, num_segments, num_bins)
     g = build_grid(*xyz.T, num_segments, num_bins, compiled=compiled)
     ref = brute_grid(xyz, num_segments, num_bins, slices)
 
@@ -192,6 +195,8 @@ def test_points_at_r_max_and_pi_fall_in_valid_bins():
 @pytest.mark.parametrize('compiled', [True, False])
 def test_tied_lowest_points_pick_the_first(compiled):
     xyz = np.array([[5.1, 0.1, 0.5], [5.1, 0.1, -1.0], [5.0, 0.1, -1.0], [9.0, 0.1, 0.0]])
+    if compiled:
+        compiled_ready(build_grid, *xyz.T, 4, 2)
     g = build_grid(*xyz.T, 4, 2, compiled=compiled)
     m = segment_of(np.array([5.0]), np.array([0.1]), 4)[0]
     assert g.candidate_index[m, 0] == 1  # the first in input order: no dependence on layout
@@ -358,6 +363,9 @@ def test_float32_and_float64_input_give_the_same_grid(compiled):
     z = np.round(rng.normal(-1.0, 0.3, r.size), 2)  # 1 cm steps: many tied lowest points
     p32 = np.stack([r * np.cos(azimuth), r * np.sin(azimuth), z], axis=1).astype(np.float32)
     p64 = p32.astype(np.float64)
+    if compiled:
+        compiled_ready(build_grid, *p32.T.copy(), m_count, 24)
+        compiled_ready(build_grid, *p64.T.copy(), m_count, 24)
     g32 = build_grid(*p32.T.copy(), m_count, 24, compiled=compiled)
     g64 = build_grid(*p64.T.copy(), m_count, 24, compiled=compiled)
     for name in ('point_segment', 'point_bin', 'count', 'candidate_index', 'candidate_r',

@@ -327,3 +327,47 @@ def test_noisy_15_degree_ramp_is_one_line(seed):
     assert out.line_count.tolist() == [32]
     np.testing.assert_allclose(out.slope, math.tan(math.radians(15.0)), atol=0.005)
     assert out.intercept[0] == pytest.approx(-1.7, abs=0.1)
+
+
+# --- compiled growing loop == numpy reference (bit for bit) ---------------------------------
+
+def _assert_same_lines(a, b):
+    for name in a.__dataclass_fields__:
+        assert np.array_equal(getattr(a, name), getattr(b, name), equal_nan=True), name
+
+
+def _both(cand_r, cand_z, density, **kw):
+    from conftest import compiled_and_reference
+    return compiled_and_reference(extract_lines, cand_r, cand_z, density, **dict(KW, **kw))
+
+
+@pytest.mark.parametrize('seed', range(6))
+def test_compiled_growing_equals_the_numpy_reference_on_random_candidates(seed):
+    rng = np.random.default_rng(seed)
+    m, n = 40, 24
+    r = np.sort(rng.uniform(2.0, 60.0, (m, n)), axis=1)
+    # ground rising with r, steps, spikes and noise; empty bins, empty segments and columns;
+    # zero densities (ratio inf / NaN) and equal r (vertical chords)
+    z = 0.05 * r + rng.choice([0.0, 0.4, -0.3, 2.0], (m, n), p=[.7, .1, .1, .1]) \
+        + rng.normal(0, 0.03, (m, n))
+    r[:, 5] = r[:, 4]
+    density = rng.choice([0.0, 1.0, 20.0, 300.0], (m, n)) * rng.uniform(0.5, 2.0, (m, n))
+    empty = rng.random((m, n)) < 0.3
+    empty[3] = True
+    empty[:, 7] = True
+    r[empty], z[empty] = np.nan, np.nan
+    compiled, reference = _both(r, z, density, max_gap_m=float(rng.uniform(1.0, 8.0)))
+    assert reference.intercept.size > m  # many lines: every kind of break happens
+    _assert_same_lines(compiled, reference)
+
+
+@pytest.mark.parametrize('source', ['sensors/velodyne_vlp16.pcd', 'sensors/hesai_xt32.pcd',
+                                    'kitti_sequnknown_spvnas_000000.bin', 'mixed'])
+def test_compiled_growing_equals_the_numpy_reference_on_real_candidates(source):
+    from conftest import candidate_grid
+    g, p = candidate_grid(source)
+    compiled, reference = _both(
+        g.candidate_r, g.candidate_z, g.density, variance_ratio=p.deming_variance_ratio,
+        max_slope=p.line_max_slope, max_distance_m=p.line_max_distance_m,
+        max_gap_m=p.line_max_gap_m, max_density_jump=p.line_max_density_jump)
+    _assert_same_lines(compiled, reference)

@@ -11,6 +11,8 @@ import pytest
 
 from gp_ground_segmentation import GroundSegmenter, SegmenterParams
 from gp_ground_segmentation.core.structure import vertical_structure_mask
+from gp_ground_segmentation.core.compiled import AVAILABLE as COMPILED
+from conftest import compiled_ready
 
 P = SegmenterParams()
 KW = dict(cell_m=P.structure_cell_m, cell_deg=P.structure_cell_deg, rise_m=P.structure_rise_m,
@@ -126,3 +128,57 @@ def test_switch_and_stage_timing_in_the_segmenter():
     assert on.stats['structure_feet'] > 0 and off.stats['structure_feet'] == 0
     assert (on.ground_mask <= off.ground_mask).all()
     assert np.count_nonzero(off.ground_mask & ~on.ground_mask) == on.stats['structure_feet']
+
+
+# --- compiled table and look-ups == numpy reference (same mask) ------------------------------
+
+@pytest.mark.parametrize('dtype', [np.float32, np.float64])
+@pytest.mark.parametrize('seed', range(3))
+def test_compiled_pass_equals_the_numpy_reference(seed, dtype):
+    if not COMPILED:
+        pytest.skip('numba not installed')
+    rng = np.random.default_rng(seed)
+    # a full turn (azimuth wrap), near and far rings, walls, boxes and posts of every height,
+    # and column points exactly step_m above a candidate (the comparison's edge)
+    parts = [ground_rings(np.arange(2.0, 60.0, 0.7), np.arange(-180.0, 180.0, 0.2),
+                          noise=0.01)]
+    for _ in range(12):
+        az = rng.uniform(-np.pi, np.pi)
+        r = rng.uniform(3.0, 120.0)
+        heights = rng.uniform(0.0, 1.2, 6)
+        face = wall(r, (-1.0, 1.0), heights)
+        c, s = np.cos(az), np.sin(az)
+        parts.append(np.c_[c * face[:, 0] - s * face[:, 1], s * face[:, 0] + c * face[:, 1],
+                           face[:, 2]])
+    points = np.concatenate(parts).astype(dtype)
+    edge = points[:50].copy()
+    edge[:, 2] = points[:50, 2] + dtype(P.structure_step_m) + dtype(P.structure_rise_m)
+    points = np.concatenate([points, edge])
+    x, y, z = (np.ascontiguousarray(points[:, i]) for i in range(3))
+    gz = np.zeros_like(z)
+    cand = z - gz <= P.ground_threshold_m
+    compiled_ready(vertical_structure_mask, x, y, z, gz, cand, **KW)
+    compiled = vertical_structure_mask(x, y, z, gz, cand, **KW)
+    reference = vertical_structure_mask(x, y, z, gz, cand, **KW, compiled=False)
+    assert 100 < np.count_nonzero(reference) < np.count_nonzero(cand)
+    assert np.array_equal(compiled, reference)
+
+
+@pytest.mark.parametrize('dtype', [np.float32, np.float64])
+def test_compiled_pass_equals_the_numpy_reference_on_a_real_scan(dtype):
+    from conftest import DATA
+    from gp_ground_segmentation.tools.io import read_points_file
+    path = DATA / 'kitti_sequnknown_spvnas_000000.bin'
+    if not COMPILED or not path.exists():
+        pytest.skip('numba or the scan is missing')
+    arr = read_points_file(path)
+    x, y, z = (np.ascontiguousarray(arr[c], dtype=dtype) for c in 'xyz')
+    result = GroundSegmenter(SegmenterParams(use_vertical_structure_test=False)).segment(
+        np.c_[x, y, z])
+    gz = result.ground_height.astype(dtype)
+    cand = result.ground_mask
+    compiled_ready(vertical_structure_mask, x, y, z, gz, cand, **KW)
+    compiled = vertical_structure_mask(x, y, z, gz, cand, **KW)
+    reference = vertical_structure_mask(x, y, z, gz, cand, **KW, compiled=False)
+    assert np.count_nonzero(reference) > 1000
+    assert np.array_equal(compiled, reference)

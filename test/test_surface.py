@@ -5,6 +5,8 @@ import numpy as np
 import pytest
 
 from gp_ground_segmentation import GroundSegmenter, SegmenterParams
+from gp_ground_segmentation.core.compiled import AVAILABLE as COMPILED
+from conftest import compiled_ready
 from scenes import synthetic
 
 
@@ -51,6 +53,38 @@ def test_ground_offsets_bins_to_edges_clipped_and_filled():
     bin0 = (0.01 + 0.03 + median + 0.3) / 3
     np.testing.assert_allclose(out[0], [bin0, bin0, 0.02, 0.02])
     np.testing.assert_allclose(out[1], median)
+
+
+@pytest.mark.parametrize('seed', range(4))
+def test_ground_offsets_compiled_equals_the_numpy_reference(seed):
+    from gp_ground_segmentation.core import surface
+    if not COMPILED:
+        pytest.skip('numba not installed')
+    rng = np.random.default_rng(seed)
+    m, n, size = 7, 5, 400
+    # scatter with outliers on both sides (clipped) and empty bins and segments
+    residual = rng.normal(0.0, 0.05, size) + rng.choice([0.0, 3.0, -2.0], size, p=[.8, .1, .1])
+    segment = rng.integers(0, m - 2, size).astype(np.int32)
+    bins = rng.integers(0, n - 1, size).astype(np.int32)
+    compiled_ready(surface.ground_offsets, residual, segment, bins, m, n, 0.05)
+    compiled = surface.ground_offsets(residual, segment, bins, m, n, 0.05)
+    reference = surface.ground_offsets(residual, segment, bins, m, n, 0.05, compiled=False)
+    assert np.array_equal(compiled, reference)  # same sums in the same order: bit-identical
+
+
+def test_ground_offsets_compiled_equals_the_numpy_reference_on_a_scan(ramp):
+    from gp_ground_segmentation.core import surface
+    _, points, result = ramp
+    grid_args = result.ground_surface.num_segments, result.ground_surface.num_bins
+    # the residuals the surface uses: ground points, z - z_hat, in their grid cells
+    ground = result.ground_mask
+    residual = points[ground, 2] - result.ground_height[ground]
+    seg = surface.segment_of(points[ground, 0], points[ground, 1], grid_args[0])
+    bins = np.arange(residual.size, dtype=np.int32) % grid_args[1]
+    compiled_ready(surface.ground_offsets, residual, seg, bins, *grid_args, 0.03)
+    compiled = surface.ground_offsets(residual, seg, bins, *grid_args, 0.03)
+    reference = surface.ground_offsets(residual, seg, bins, *grid_args, 0.03, compiled=False)
+    assert residual.size > 10000 and np.array_equal(compiled, reference)
 
 
 def test_height_at_is_vectorised_and_nan_outside_the_grid(ramp):

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .compiled import kernel, run
 from .lines import relative_to_first
 
 
@@ -41,7 +42,7 @@ def steep_line_candidates(slope: np.ndarray, max_slope: float) -> np.ndarray:
 def elevated_plateaus(cand_r: np.ndarray, cand_z: np.ndarray, slope_before: np.ndarray, *,
                       step_up_m: float, max_slope: float, max_gap_m: float,
                       start_height_m: float | None = None,
-                      end_on_drop: bool = True) -> np.ndarray:
+                      end_on_drop: bool = True, compiled: bool = True) -> np.ndarray:
     """(M, N) bool: candidates on a plateau entered by a steep step up (an obstacle's top).
 
     A state machine per segment over its candidates in order of r (all segments in lock-step):
@@ -65,14 +66,27 @@ def elevated_plateaus(cand_r: np.ndarray, cand_z: np.ndarray, slope_before: np.n
 
     ``slope_before`` is ``LineSegments.slope_before``. Heights are taken relative to each
     segment's first candidate, as in ``lines.extract_lines``.
+
+    ``compiled``: a numba loop over bins and segments when numba imports (else, or if it
+    fails, the numpy reference, vectorised over the segments); both give the same mask.
     """
     present, rr, zz, r0, z0 = relative_to_first(cand_r, cand_z)
-    m_count, n_count = cand_r.shape
+    m_count = cand_r.shape[0]
     last_r = np.full(m_count, np.nan)
     last_z = np.full(m_count, np.nan)
     if start_height_m is not None:
         last_r = -r0
         last_z = start_height_m - z0
+    args = (present, rr, zz, np.asarray(slope_before, dtype=np.float64), last_r, last_z,
+            float(step_up_m), float(max_slope), float(max_gap_m), bool(end_on_drop))
+    return run(compiled, _plateaus_compiled, _plateaus_numpy, *args)
+
+
+def _plateaus_numpy(present, rr, zz, slope_before, last_r, last_z, step_up_m, max_slope,
+                    max_gap_m, end_on_drop):
+    """The numpy reference of :func:`elevated_plateaus`' state machine (all segments at once).
+    """
+    m_count, n_count = present.shape
     elevated_now = np.zeros(m_count, dtype=bool)
     base_r = np.zeros(m_count)  # ground r, z and slope just before the step up
     base_z = np.zeros(m_count)
@@ -104,6 +118,42 @@ def elevated_plateaus(cand_r: np.ndarray, cand_z: np.ndarray, slope_before: np.n
             last_r = np.where(has, r, last_r)
             last_z = np.where(has, z, last_z)
     return elevated
+
+
+def _plateaus_loop(present, rr, zz, slope_before, last_r, last_z, step_up_m, max_slope,
+                   max_gap_m, end_on_drop):
+    """:func:`_plateaus_numpy` one segment and bin at a time (compiled with numba): the same
+    comparisons of the same values, so the same mask."""
+    m_count, n_count = present.shape
+    elevated = np.zeros((m_count, n_count), dtype=np.bool_)
+    for m in range(m_count):
+        prev_r, prev_z = last_r[m], last_z[m]
+        elevated_now = False
+        base_r = 0.0
+        base_z = 0.0
+        base_slope = 0.0
+        for k in range(n_count):
+            if not present[m, k]:
+                continue
+            r, z = rr[m, k], zz[m, k]
+            dr, rise = r - prev_r, z - prev_z
+            # np.maximum(dr, 1e-6): NaN stays NaN
+            chord = rise / (dr if (dr >= 1e-6 or np.isnan(dr)) else 1e-6)
+            if elevated_now:
+                back_down = z <= base_z + base_slope * (r - base_r) + step_up_m
+                drop = end_on_drop and rise < -step_up_m
+                elevated_now = not (drop or back_down or dr > max_gap_m)
+            elif np.isfinite(prev_r) and rise > step_up_m and chord > max_slope:
+                elevated_now = True  # enter: the ground before the step is the base
+                before = slope_before[m, k]
+                base_r, base_z = prev_r, prev_z
+                base_slope = before if np.isfinite(before) else 0.0
+            elevated[m, k] = elevated_now
+            prev_r, prev_z = r, z
+    return elevated
+
+
+_plateaus_compiled = kernel(_plateaus_loop, error_model='numpy')
 
 
 def ground_under_sensor(cand_z: np.ndarray, training: np.ndarray, line_id: np.ndarray,

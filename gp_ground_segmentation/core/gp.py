@@ -370,10 +370,12 @@ class FrameGP:
         diag = np.diagonal(sol.a_inv, axis1=1, axis2=2)
         return np.where(self.valid, sol.alpha / diag, 0.0)
 
-    def predict(self, sol: GPSolution, r_star, d_star, with_std=True):
+    def predict(self, sol: GPSolution, r_star, d_star, with_std=True, return_kernel=False):
         """Posterior mean (absolute z) and std at r_star, d_star (S, k) of the batch segments.
 
         ``with_std=False`` skips the variance (the costlier half) and returns std = None.
+        ``return_kernel``: also return k* (S, n, k) for a later :meth:`std_from_kernel` (the
+        std without recomputing k*), or None when the compiled backend did not run.
         """
         sigma_f, gain, _ = sol.theta
         if self.backend == 'numba' and sol.gradient is not None:  # a compiled solution
@@ -383,21 +385,27 @@ class FrameGP:
             r_star, d_star = (np.broadcast_to(a, shape).astype(np.float64)
                               for a in (r_star, d_star))
             try:
-                mean, std = gp_compiled.predict_batched(
+                mean, std, k_star = gp_compiled.predict_batched(
                     self.r, self.d, self.counts, sol.alpha, sol.a_inv, r_star, d_star,
                     float(sigma_f), float(gain), bool(with_std))
             except Exception as exc:  # noqa: BLE001 - numba compile/runtime failure
                 self.backend, self.compiled_error = 'numpy', str(exc)
             else:
-                return mean + self.mean, (std if with_std else None)
+                out = (mean + self.mean, (std if with_std else None))
+                return out + (k_star,) if return_kernel else out
         l_star = gain * np.asarray(d_star, dtype=np.float64)[:, :, None]
         l_train = gain * self.d[:, None, :]
         k_star = paciorek_kernel(np.asarray(r_star, dtype=np.float64)[:, :, None], l_star,
                                  self.r[:, None, :], l_train, sigma_f)
         k_star = np.where(self.valid[:, None, :], k_star, 0.0)
         mean = np.einsum('skn,sn->sk', k_star, sol.alpha) + self.mean
-        if not with_std:
-            return mean, None
-        reduce = np.einsum('skn,snm,skm->sk', k_star, sol.a_inv, k_star, optimize=True)
-        var = np.maximum(sigma_f * sigma_f - reduce, 0.0)  # clamp round-off negatives
-        return mean, np.sqrt(var)
+        std = None
+        if with_std:
+            reduce = np.einsum('skn,snm,skm->sk', k_star, sol.a_inv, k_star, optimize=True)
+            std = np.sqrt(np.maximum(sigma_f * sigma_f - reduce, 0.0))  # clamp round-off
+        return (mean, std, None) if return_kernel else (mean, std)
+
+    def std_from_kernel(self, sol: GPSolution, k_star) -> np.ndarray:
+        """Posterior std (S, k) from the k* that ``predict(..., return_kernel=True)`` returned
+        for ``sol``: the same numbers as ``predict(..., with_std=True)`` gives."""
+        return gp_compiled.std_batched(self.counts, sol.a_inv, k_star, float(sol.theta[0]))

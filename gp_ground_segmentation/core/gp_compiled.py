@@ -121,15 +121,44 @@ def _solve_batched(r, d, z, noise_var, counts, sigma_f, gain, sigma_n):
     return ok, logdet, alpha, a_inv, gradient
 
 
+def _std_batched(counts, a_inv, k_star, sigma_f):
+    """Posterior std sqrt(sigma_f^2 - k*^T A^-1 k*) from the (S, n, k) k* of _predict_batched.
+
+    All k prediction points of a segment are accumulated at once (innermost loop over them,
+    which the compiler vectorises); each point's sums still run in the order of a one point
+    at a time loop.
+    """
+    s_count, _, k_count = k_star.shape
+    std = np.zeros((s_count, k_count))
+    w = np.zeros(k_count)  # (A^-1 k*)_i of every prediction point
+    reduce = np.zeros(k_count)  # k*^T A^-1 k* of every prediction point
+    sf2 = sigma_f * sigma_f
+    for s in range(s_count):
+        m = counts[s]
+        ks = k_star[s]
+        reduce[:] = 0.0
+        for i in range(m):
+            w[:] = 0.0
+            for j in range(m):
+                a = a_inv[s, i, j]
+                for c in range(k_count):
+                    w[c] += a * ks[j, c]
+            for c in range(k_count):
+                reduce[c] += ks[i, c] * w[c]
+        for c in range(k_count):
+            std[s, c] = np.sqrt(max(sf2 - reduce[c], 0.0))  # clamp round-off negatives
+    return std
+
+
 def _predict_batched(r, d, counts, alpha, a_inv, r_star, d_star, sigma_f, gain, with_std):
-    """Posterior mean (minus the prior mean) and std at r_star, d_star (S, k) of every segment.
+    """Posterior mean (minus the prior mean) and std at r_star, d_star (S, k) of every segment,
+    and k* (S, n, k) [segment, training point, prediction point] for a later std_batched.
 
     std is all zeros when ``with_std`` is False.
     """
     s_count, k_count = r_star.shape
     mean = np.zeros((s_count, k_count))
-    std = np.zeros((s_count, k_count))
-    k_star = np.zeros(r.shape[1])
+    k_star = np.zeros((s_count, r.shape[1], k_count))
     sf2 = sigma_f * sigma_f
     for s in range(s_count):
         m = counts[s]
@@ -141,25 +170,22 @@ def _predict_batched(r, d, counts, alpha, a_inv, r_star, d_star, sigma_f, gain, 
                 sl = l1 * l1 + l2 * l2
                 diff = r_star[s, c] - r[s, j]
                 kj = sf2 * np.sqrt(2.0 * l1 * l2 / sl) * np.exp(-diff * diff / sl)
-                k_star[j] = kj
+                k_star[s, j, c] = kj
                 v += kj * alpha[s, j]
             mean[s, c] = v
-            if with_std:
-                reduce = 0.0
-                for i in range(m):
-                    w = 0.0
-                    for j in range(m):
-                        w += a_inv[s, i, j] * k_star[j]
-                    reduce += k_star[i] * w
-                std[s, c] = np.sqrt(max(sf2 - reduce, 0.0))  # clamp round-off negatives
-    return mean, std
+    if with_std:
+        std = std_batched(counts, a_inv, k_star, sigma_f)
+    else:
+        std = np.zeros((s_count, k_count))
+    return mean, std, k_star
 
 
 if AVAILABLE:
     solve_batched = numba.njit(cache=True, nogil=True)(_solve_batched)
+    std_batched = numba.njit(cache=True, nogil=True)(_std_batched)  # before predict: it calls it
     predict_batched = numba.njit(cache=True, nogil=True)(_predict_batched)
 else:  # pragma: no cover - the numpy backend is used instead; these are never called
-    solve_batched, predict_batched = _solve_batched, _predict_batched
+    solve_batched, std_batched, predict_batched = _solve_batched, _std_batched, _predict_batched
 
 
 def warm_up() -> None:
@@ -173,5 +199,6 @@ def warm_up() -> None:
         counts = np.array([2], dtype=np.intp)
         _, _, alpha, a_inv, _ = solve_batched(np.array([[0.0, 1.0]]), one, one, one * 0.0,
                                               counts, 1.0, 1.0, 0.1)
-        predict_batched(np.array([[0.0, 1.0]]), one, counts, alpha, a_inv, one, one, 1.0, 1.0,
-                        True)
+        _, _, k_star = predict_batched(np.array([[0.0, 1.0]]), one, counts, alpha, a_inv, one,
+                                       one, 1.0, 1.0, True)
+        std_batched(counts, a_inv, k_star, 1.0)

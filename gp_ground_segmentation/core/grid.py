@@ -38,10 +38,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-try:  # numba is a regular dependency, but the package must still work without it
-    import numba
-except ImportError:  # pragma: no cover - the numpy reference is used instead
-    numba = None
+from .compiled import AVAILABLE, kernel, run
 
 
 @dataclass
@@ -163,9 +160,11 @@ def _bin_points_compiled(r, seg, z, m_count, n_count):
     return bins, fraction, r_min, width, count, candidate_index
 
 
-if numba is not None:
-    _segment_widths_compiled = numba.njit(cache=True, nogil=True)(_segment_widths)
-    _bin_points_compiled = numba.njit(cache=True, nogil=True)(_bin_points_compiled)
+if AVAILABLE:  # the pass calls the compiled _segment_widths
+    _segment_widths_compiled = kernel(_segment_widths)
+    _bin_points_compiled = kernel(_bin_points_compiled)
+else:  # pragma: no cover - the numpy reference is used instead
+    _bin_points_compiled = None
 
 
 def build_grid(x: np.ndarray, y: np.ndarray, z: np.ndarray, num_segments: int,
@@ -179,15 +178,8 @@ def build_grid(x: np.ndarray, y: np.ndarray, z: np.ndarray, num_segments: int,
     """
     m_count, n_count = int(num_segments), int(num_bins)
     r64, seg = _range_and_segment(x, y, m_count)
-    binned = None
-    if compiled and numba is not None:
-        try:
-            binned = _bin_points_compiled(r64, seg, z, m_count, n_count)
-        except Exception:  # noqa: BLE001 - numba compile/runtime failure: the reference
-            binned = None
-    if binned is None:
-        binned = _bin_points_numpy(r64, seg, z, m_count, n_count)
-    bins, fraction, r_min, width, count, candidate_index = binned
+    bins, fraction, r_min, width, count, candidate_index = run(
+        compiled, _bin_points_compiled, _bin_points_numpy, r64, seg, z, m_count, n_count)
 
     size = m_count * n_count
     occupied = candidate_index >= 0

@@ -21,8 +21,11 @@ line of a segment accumulates its candidates' moments; the next candidate is a *
 * the line with it added would be steeper than zeta_b (``max_slope``); for a one-point line
   this is the slope of the two-point chord.
 
-All segments advance in lock-step (one numpy step per bin index, vectorised over the M
-segments), so the cost is N small vector operations, not M*N Python iterations.
+All segments advance in lock-step, bin index by bin index. Two implementations give the same
+lines, bit for bit: a compiled (numba, ``nogil``) loop over bins and segments, and the numpy
+reference (one vectorised step over the M segments per bin index: N small vector operations,
+about 2.5 ms of Python overhead per frame), used without numba. Both evaluate the same scalar
+formulas in the same order and number the lines in the same (bin-major, then segment) order.
 
 Output per candidate: its line id (unique in the frame), whether it starts a line after a
 critical point, the slope g = |beta| of its final line, and the signed slope of its line just
@@ -35,6 +38,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
+from .compiled import AVAILABLE, kernel, run
 
 
 @dataclass
@@ -90,8 +95,13 @@ def relative_to_first(cand_r: np.ndarray, cand_z: np.ndarray):
 
 def extract_lines(cand_r: np.ndarray, cand_z: np.ndarray, density: np.ndarray, *,
                   variance_ratio: float, max_slope: float, max_distance_m: float,
-                  max_gap_m: float, max_density_jump: float) -> LineSegments:
-    """Grow line-segments over the candidates (M, N) of every segment; see module docstring."""
+                  max_gap_m: float, max_density_jump: float,
+                  compiled: bool = True) -> LineSegments:
+    """Grow line-segments over the candidates (M, N) of every segment; see module docstring.
+
+    ``compiled``: the numba loop when numba imports (the numpy reference otherwise, or if the
+    compiled loop fails).
+    """
     m_count, n_count = cand_r.shape
     rows = np.arange(m_count)
     present, rr, zz, r0, z0 = relative_to_first(cand_r, cand_z)
@@ -99,6 +109,42 @@ def extract_lines(cand_r: np.ndarray, cand_z: np.ndarray, density: np.ndarray, *
     # moments (1, r, z, r^2, z^2, r z) of every candidate, 0 where there is none
     rr0, zz0 = np.where(present, rr, 0.0), np.where(present, zz, 0.0)
     moments = np.stack([present.astype(np.float64), rr0, zz0, rr0 * rr0, zz0 * zz0, rr0 * zz0])
+    density = np.asarray(density, dtype=np.float64)
+    args = (present, rr, zz, density, moments, float(variance_ratio), float(max_slope),
+            float(max_distance_m), float(max_gap_m), 1.0 / max_density_jump,
+            float(max_density_jump))
+    line_id, is_critical, slope_before, next_line = run(compiled, _grow_lines_compiled,
+                                                        _grow_lines_numpy, *args)
+
+    # Final fit of every line from its members (bincount over line ids).
+    ids = line_id[present]
+    r_abs, z_abs = cand_r[present], cand_z[present]
+    seg_of = np.broadcast_to(rows[:, None], (m_count, n_count))[present]
+    r_rel, z_rel = r_abs - r0[seg_of], z_abs - z0[seg_of]
+    num_lines = next_line
+    count = np.bincount(ids, minlength=num_lines).astype(np.float64)
+    line_sums = [count] + [np.bincount(ids, weights=w, minlength=num_lines)
+                           for w in (r_rel, z_rel, r_rel * r_rel, z_rel * z_rel, r_rel * z_rel)]
+    alpha_rel, beta = deming_fit(*line_sums, variance_ratio)
+    beta = np.where(count >= 2, beta, np.nan)
+    line_seg = np.zeros(num_lines, dtype=np.intp)
+    line_seg[ids] = seg_of
+    intercept = alpha_rel + z0[line_seg] - beta * r0[line_seg]
+    r_lo = np.full(num_lines, np.inf)
+    r_hi = np.full(num_lines, -np.inf)
+    np.minimum.at(r_lo, ids, r_abs)
+    np.maximum.at(r_hi, ids, r_abs)
+
+    slope = np.full((m_count, n_count), np.nan)
+    slope[present] = np.abs(beta[ids])
+    return LineSegments(line_id, is_critical, slope, intercept, beta, count.astype(np.intp),
+                        np.stack([r_lo, r_hi], axis=1), slope_before)
+
+
+def _grow_lines_numpy(present, rr, zz, density, moments, variance_ratio, max_slope,
+                      max_distance_m, max_gap_m, low_density, high_density):
+    """The numpy reference of the growing loop: (line_id, is_critical, slope_before, lines)."""
+    m_count, n_count = present.shape
     sums = np.zeros((6, m_count))  # n, Sr, Sz, Srr, Szz, Srz of each segment's current line
     last_r = np.full(m_count, np.nan)
     last_rho = np.full(m_count, np.nan)
@@ -107,7 +153,6 @@ def extract_lines(cand_r: np.ndarray, cand_z: np.ndarray, density: np.ndarray, *
     next_line = 0
     line_id = np.full((m_count, n_count), -1, dtype=np.intp)
     is_critical = np.zeros((m_count, n_count), dtype=bool)
-    low_density, high_density = 1.0 / max_density_jump, max_density_jump
 
     with np.errstate(divide='ignore', invalid='ignore'):  # empty lines give NaN: never true
         for k in range(n_count):
@@ -138,27 +183,94 @@ def extract_lines(cand_r: np.ndarray, cand_z: np.ndarray, density: np.ndarray, *
             is_critical[:, k] = critical
             last_r = np.where(has, r, last_r)
             last_rho = np.where(has, rho, last_rho)
+    return line_id, is_critical, slope_before, next_line
 
-    # Final fit of every line from its members (bincount over line ids).
-    ids = line_id[present]
-    r_abs, z_abs = cand_r[present], cand_z[present]
-    seg_of = np.broadcast_to(rows[:, None], (m_count, n_count))[present]
-    r_rel, z_rel = r_abs - r0[seg_of], z_abs - z0[seg_of]
-    num_lines = next_line
-    count = np.bincount(ids, minlength=num_lines).astype(np.float64)
-    line_sums = [count] + [np.bincount(ids, weights=w, minlength=num_lines)
-                           for w in (r_rel, z_rel, r_rel * r_rel, z_rel * z_rel, r_rel * z_rel)]
-    alpha_rel, beta = deming_fit(*line_sums, variance_ratio)
-    beta = np.where(count >= 2, beta, np.nan)
-    line_seg = np.zeros(num_lines, dtype=np.intp)
-    line_seg[ids] = seg_of
-    intercept = alpha_rel + z0[line_seg] - beta * r0[line_seg]
-    r_lo = np.full(num_lines, np.inf)
-    r_hi = np.full(num_lines, -np.inf)
-    np.minimum.at(r_lo, ids, r_abs)
-    np.maximum.at(r_hi, ids, r_abs)
 
-    slope = np.full((m_count, n_count), np.nan)
-    slope[present] = np.abs(beta[ids])
-    return LineSegments(line_id, is_critical, slope, intercept, beta, count.astype(np.intp),
-                        np.stack([r_lo, r_hi], axis=1), slope_before)
+def _deming_scalar(n, s_r, s_z, s_rr, s_zz, s_rz, variance_ratio):
+    """:func:`deming_fit` for one line, the same operations in the same order."""
+    mean_r = s_r / n
+    mean_z = s_z / n
+    cov_rr = s_rr / n - mean_r * mean_r
+    if cov_rr < 0.0:  # np.maximum(x, 0): NaN stays NaN
+        cov_rr = 0.0
+    cov_zz = s_zz / n - mean_z * mean_z
+    if cov_zz < 0.0:
+        cov_zz = 0.0
+    cov_rz = s_rz / n - mean_r * mean_z
+    diff = cov_zz - variance_ratio * cov_rr
+    if cov_rz == 0:
+        beta = np.inf if diff > 0 else 0.0
+    else:
+        beta = (diff + np.sqrt(diff * diff + 4.0 * variance_ratio * cov_rz * cov_rz)) / (
+            2.0 * cov_rz)
+    return mean_z - beta * mean_r, beta
+
+
+def _grow_lines_loop(present, rr, zz, density, moments, variance_ratio, max_slope,
+                     max_distance_m, max_gap_m, low_density, high_density):
+    """:func:`_grow_lines_numpy` as scalar loops (compiled with numba): same outputs."""
+    # np.empty and fill loops rather than np.full: they compile faster
+    m_count, n_count = present.shape
+    sums = np.zeros((6, m_count))
+    last_r = np.empty(m_count)
+    last_rho = np.empty(m_count)
+    current_line = np.empty(m_count, dtype=np.intp)
+    slope_before = np.empty((m_count, n_count))
+    line_id = np.empty((m_count, n_count), dtype=np.intp)
+    is_critical = np.zeros((m_count, n_count), dtype=np.bool_)
+    for m in range(m_count):
+        last_r[m] = np.nan
+        last_rho[m] = np.nan
+        current_line[m] = -1
+        for k in range(n_count):
+            slope_before[m, k] = np.nan
+            line_id[m, k] = -1
+    joined = np.zeros(6)
+    next_line = 0
+    for k in range(n_count):
+        column_has = False
+        for m in range(m_count):
+            column_has = column_has or present[m, k]
+        if not column_has:
+            continue  # no segment has a candidate at this bin index
+        for m in range(m_count):
+            has = present[m, k]
+            n = sums[0, m]
+            critical = False
+            if has and n > 0:
+                alpha, beta = _deming_scalar(sums[0, m], sums[1, m], sums[2, m], sums[3, m],
+                                             sums[4, m], sums[5, m], variance_ratio)
+                if n >= 2:
+                    slope_before[m, k] = beta
+                r, z, rho = rr[m, k], zz[m, k], density[m, k]
+                gap = r - last_r[m] > max_gap_m
+                ratio = rho / last_rho[m]
+                jump = ratio > high_density or ratio < low_density
+                far = n >= 2 and (np.abs(z - alpha - beta * r) / np.sqrt(1.0 + beta * beta)
+                                  > max_distance_m)
+                for j in range(6):
+                    joined[j] = sums[j, m] + moments[j, m, k]
+                beta_new = _deming_scalar(joined[0], joined[1], joined[2], joined[3],
+                                          joined[4], joined[5], variance_ratio)[1]
+                steep = np.abs(beta_new) > max_slope
+                critical = gap or jump or far or steep
+            if (has and not n > 0) or critical:
+                current_line[m] = next_line
+                next_line += 1
+                for j in range(6):
+                    sums[j, m] = 0.0 + moments[j, m, k]
+            else:
+                for j in range(6):
+                    sums[j, m] = sums[j, m] + moments[j, m, k]
+            if has:
+                line_id[m, k] = current_line[m]
+                last_r[m] = rr[m, k]
+                last_rho[m] = density[m, k]
+            is_critical[m, k] = critical
+    return line_id, is_critical, slope_before, next_line
+
+
+_grow_lines_compiled = None
+if AVAILABLE:  # the loop calls the compiled scalar fit
+    _deming_scalar = kernel(_deming_scalar, error_model='numpy')
+    _grow_lines_compiled = kernel(_grow_lines_loop, error_model='numpy')

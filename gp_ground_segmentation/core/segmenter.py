@@ -70,7 +70,7 @@ import numpy as np
 from threadpoolctl import ThreadpoolController
 
 from . import additions
-from . import gp_compiled
+from . import compiled, gp_compiled
 from .gp import FrameGP, GPSolution, GroundAnchor, length_scale_factors, resolve_backend
 from .grid import RadialGrid, build_grid, relative_density
 from .lines import LineSegments, extract_lines
@@ -81,6 +81,9 @@ from .surface import GroundSurface, ground_offsets
 
 _OUTLIER_NOISE_VAR = 1e4  # m^2: a rejected candidate's noise variance (std 100 m)
 _blas = None  # threadpoolctl controller, made on first use (after scipy has loaded its BLAS)
+# warm_up() waits this long (s) for the background compilations: loading them from numba's
+# cache takes ~0.1 s; a first compilation (~4 s on 2 cores) goes on while frames use numpy
+_BACKGROUND_WAIT_S = 0.5
 
 
 def _single_threaded_blas():
@@ -186,24 +189,26 @@ def _ground_at_bin_edges(model: _GroundModel, edges: np.ndarray, need_std: bool)
     """GP posterior mean (and std) at the (M, N + 1) bin ``edges`` (stage ``predict``).
 
     Segments outside the GP batch keep ``model.default_height`` and the prior std sigma_f.
-    Returns (mean, std, d at the edges of the GP's segments) with (M, N + 1) arrays.
+    Returns (mean, std, d at the edges of the GP's segments, k* there) with (M, N + 1) mean
+    and std; k* (``FrameGP.predict``'s kernel) is None unless the compiled backend ran.
     """
     mean = np.full(edges.shape, model.default_height)
     std = np.full(edges.shape, model.theta[0])
-    d_star = None
+    d_star = k_star = None
     if model.solution is not None:
         rows = model.gp.segments
         d_fill = _fill_along_rows(model.length_factor, model.training)
         d_star = np.concatenate([d_fill, d_fill[:, -1:]], axis=1)[rows]
-        mean_b, std_b = model.gp.predict(model.solution, edges[rows], d_star, with_std=need_std)
+        mean_b, std_b, k_star = model.gp.predict(model.solution, edges[rows], d_star,
+                                                 with_std=need_std, return_kernel=True)
         mean[rows] = mean_b
         if need_std:
             std[rows] = std_b
-    return mean, std, d_star
+    return mean, std, d_star, k_star
 
 
 def _ground_surface(model: _GroundModel, grid: RadialGrid, edges, mean, std, point_z, ground,
-                    ground_height, valid_index) -> GroundSurface:
+                    ground_height, valid_index, k_star) -> GroundSurface:
     """The frame's GroundSurface; ``std`` None: its z_std is computed when first read.
 
     The deferred computations keep the model, the edges, the (N,) result arrays and the points'
@@ -213,8 +218,12 @@ def _ground_surface(model: _GroundModel, grid: RadialGrid, edges, mean, std, poi
     m_count, n_bins = grid.num_segments, grid.num_bins
 
     def compute_std():
-        with _single_threaded_blas(), np.errstate(over='ignore'):
-            return _ground_at_bin_edges(model, edges, need_std=True)[1]
+        if k_star is None:  # numpy backend: the prediction again, with the std
+            with _single_threaded_blas(), np.errstate(over='ignore'):
+                return _ground_at_bin_edges(model, edges, need_std=True)[1]
+        std = np.full(edges.shape, model.theta[0])  # from the predict stage's k*: cheaper
+        std[model.gp.segments] = model.gp.std_from_kernel(model.solution, k_star)
+        return std
 
     def compute_offset():
         on_ground = ground[valid_index]
@@ -289,8 +298,11 @@ class GroundSegmenter:
         return self._backend
 
     def warm_up(self) -> None:
-        """Compile (or load from numba's cache) the GP step and the grid pass now, not inside
-        the first frame (see gp_compiled.py for where the cache lives).
+        """Compile (or load from numba's cache) the GP step now, not inside the first frame, and
+        have the stages with a bit-identical numpy twin (grid pass, line growing, plateau state
+        machine, structure look-ups, surface offsets) compiled in the background
+        (core/compiled.py; up to _BACKGROUND_WAIT_S is waited for them, enough to load them from
+        the cache). See gp_compiled.py for where the cache lives.
 
         On failure this segmenter switches to numpy and the error is raised for the caller to
         report; segmenting still works.
@@ -301,9 +313,25 @@ class GroundSegmenter:
             except Exception:
                 self._backend = 'numpy'
                 raise
-            for dtype in (np.float32, np.float64):  # both input precisions of the grid pass
+            for dtype in (np.float32, np.float64):  # both input precisions of these passes
                 xyz = np.ones((3, 2), dtype=dtype)
-                build_grid(*xyz, 2, 2)
+                grid = build_grid(*xyz, 2, 2)
+                # a ground point with a column point right above it reaches the compiled part
+                vertical_structure_mask(xyz[0], xyz[1] * 0, np.array([0.0, 0.5], dtype),
+                                        np.zeros(2, dtype), np.array([True, False]),
+                                        cell_m=0.03, cell_deg=0.25, rise_m=0.2,
+                                        max_height_m=0.7, step_m=0.05)
+            # the line growing loop, the plateau state machine and the surface's ground
+            # offsets (float64 only)
+            lines = extract_lines(grid.candidate_r, grid.candidate_z, grid.density,
+                                  variance_ratio=1.0, max_slope=1.0, max_distance_m=1.0,
+                                  max_gap_m=1.0, max_density_jump=2.0)
+            additions.elevated_plateaus(grid.candidate_r, grid.candidate_z, lines.slope_before,
+                                        step_up_m=0.3, max_slope=1.0, max_gap_m=1.0)
+            ground_offsets(np.zeros(1), np.zeros(1, np.int32), np.zeros(1, np.int32), 1, 1, 0.1)
+            # These stages compile in the background (core/compiled.py); loading them from
+            # numba's cache takes ~0.1 s, so wait that long, not the ~4 s of a first compile.
+            compiled.wait(_BACKGROUND_WAIT_S)
 
     @property
     def hyperparameters(self) -> Hyperparameters:
@@ -518,7 +546,8 @@ class GroundSegmenter:
         lines = extract_lines(grid.candidate_r, grid.candidate_z, grid.density,
                               variance_ratio=p.deming_variance_ratio, max_slope=p.line_max_slope,
                               max_distance_m=p.line_max_distance_m, max_gap_m=p.line_max_gap_m,
-                              max_density_jump=p.line_max_density_jump)
+                              max_density_jump=p.line_max_density_jump,
+                              compiled=self._backend == 'numba')
         if p.use_chord_slope_for_single_points:
             lines = dataclasses.replace(lines, slope=additions.one_point_line_slopes(
                 lines.slope, grid.candidate_r, grid.candidate_z))
@@ -533,7 +562,7 @@ class GroundSegmenter:
         t = time.perf_counter()
         need_std = details or p.ground_threshold_std_factor > 0
         edges = grid.bin_edges()
-        mean_full, std_full, d_star = _ground_at_bin_edges(model, edges, need_std)
+        mean_full, std_full, d_star, k_star = _ground_at_bin_edges(model, edges, need_std)
         timings['predict'] = (time.perf_counter() - t) * 1e3
 
         t = time.perf_counter()
@@ -569,6 +598,6 @@ class GroundSegmenter:
                 np.where(grid.has_candidate, theta[1] * model.length_factor, np.nan), edges,
                 mean_full, std_full, threshold, model.gp, model.solution, d_star, feet)
         surface = _ground_surface(model, grid, edges, mean_full, std_full if need_std else None,
-                                  xyz[:, 2], ground, height, valid_index)
+                                  xyz[:, 2], ground, height, valid_index, k_star)
         return SegmentationResult(ground, valid, height, self._theta, timings, stats, extra,
                                   surface, xyz[:, 2])

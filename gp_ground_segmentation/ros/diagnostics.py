@@ -113,10 +113,11 @@ class ProcessingWindow:
             self._outcomes.extend(['dropped'] * int(count))
 
     def record_frame(self, out: FrameOutput, frame_id: str | None = None,
-                     warnings: list | None = None) -> None:
+                     warnings: list | None = None, node_timings: dict | None = None) -> None:
         """A frame was processed successfully and its outputs published. ``warnings``: one-line
         notes on its input (default ``out.warnings``); they make the status WARN until the next
-        frame."""
+        frame. ``node_timings``: stage -> ms measured outside the pipeline (the node's
+        ``handoff`` and ``publish``), kept with the frame's pipeline timings."""
         if warnings is None:
             warnings = list(getattr(out, 'warnings', None) or [])
         res = out.result
@@ -128,7 +129,7 @@ class ProcessingWindow:
             self.last_outcome = 'ok'
             if frame_id is not None:
                 self.last_frame_id = frame_id
-            self._timings.append(frame_timings(out))
+            self._timings.append({**frame_timings(out), **(node_timings or {})})
             self._stats.append(dict(res.stats))
             self._outcomes.append('warning' if warnings else 'ok')
             self.last_points = {'points_in': n, 'points_ground': n_ground,

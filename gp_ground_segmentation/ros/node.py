@@ -240,7 +240,7 @@ class GroundSegmentationNode(Node):
             with self._cond:
                 if len(self._slot) == self._slot.maxlen:
                     self.window.record_dropped(1)  # deque(maxlen) evicts the oldest on append
-                self._slot.append(msg)
+                self._slot.append((msg, time.perf_counter()))
                 self._cond.notify()
         except Exception as exc:  # never let an exception out of an executor callback
             self.get_logger().error(f'cloud callback failed: {_one_line(exc)}',
@@ -260,12 +260,12 @@ class GroundSegmentationNode(Node):
                     self._cond.wait()
                 if self._stopping:
                     return
-                msg = self._slot.popleft()
+                msg, received_at = self._slot.popleft()
                 pending, self._pending_params = self._pending_params, None
             try:
                 if pending is not None:
                     self._switch_segmenter(pending)
-                self._process(msg)
+                self._process(msg, received_at)
             except Exception as exc:  # last line of defence: the worker must keep running
                 self.window.record_failure(_one_line(f'{type(exc).__name__}: {exc}'), False)
 
@@ -325,10 +325,13 @@ class GroundSegmentationNode(Node):
                          f'[{_layout_text(layout)}] (two publishers on the topic?)')
         return notes
 
-    def _process(self, msg) -> None:
+    def _process(self, msg, received_at: float) -> None:
+        """One frame: process, publish, record. ``received_at``: perf_counter() when the
+        subscription callback put it into the slot (its wait there is the ``handoff`` time)."""
         frame_id = None
         try:
             frame_id = msg.header.frame_id
+            handoff_ms = (time.perf_counter() - received_at) * 1e3
             out = process_cloud(msg, self._segmenter, **self._outputs)
             notes = list(out.warnings)
             try:
@@ -336,11 +339,14 @@ class GroundSegmentationNode(Node):
                 self._last_stamp, self._last_layout = _stamp_s(msg), _layout_of(msg)
             except Exception as exc:  # a check must never cost the frame
                 notes.append(f'input check failed: {_one_line(exc)}')
+            t_publish = time.perf_counter()
             self._pub_ground.publish(out.ground)
             self._pub_obstacles.publish(out.obstacles)
             if out.surface is not None:
                 self._pub_surface.publish(out.surface)
-            self.window.record_frame(out, frame_id, notes)
+            publish_ms = (time.perf_counter() - t_publish) * 1e3
+            self.window.record_frame(out, frame_id, notes,
+                                     {'handoff': handoff_ms, 'publish': publish_ms})
             for note in notes:
                 if note.startswith(NOT_CENTRED):
                     if self._centring_logged:  # a property of the set-up: say it once

@@ -1,0 +1,100 @@
+# SPDX-License-Identifier: Apache-2.0
+"""numba kernels of the core beside their numpy references: compile one, run one.
+
+Each stage compiled here (grid pass, line growing, plateau state machine, structure look-ups,
+surface offsets) keeps a numpy reference that gives the same output, bit for bit (tests compare
+them), used without numba or when a kernel fails. Kernels are cached on disk (``cache=True``,
+see gp_compiled.py for where) and release the GIL (``nogil``).
+
+Because the outputs are the same, a kernel need not be ready to be asked for: :func:`run` calls
+it when it is compiled (or loaded from numba's cache) for the arguments' types, and otherwise
+returns the reference's result and has one background thread compile it. So the first run of
+a new install does not wait ~4 s for these compilations (the first frames take the numpy path
+meanwhile), and later processes load them from the cache within their first frame or
+``GroundSegmenter.warm_up()``. :func:`wait` blocks until the queued compilations are done
+(tests, benchmarks). The GP step (gp_compiled.py) is not here: its compiled and numpy results
+differ in round-off, so it is compiled before use.
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+
+try:  # numba is a regular dependency, but the package must still work without it
+    import numba
+except ImportError:  # pragma: no cover - the numpy references are used instead
+    numba = None
+
+__all__ = ['AVAILABLE', 'kernel', 'run', 'wait']
+
+AVAILABLE = numba is not None
+
+_lock = threading.Lock()
+_queued = set()  # (kernel, signature) given to the compiler thread, done or not
+_failed = set()  # kernels that did not compile: the reference from then on
+_jobs: queue.Queue = queue.Queue()
+_compiler = None  # the background thread, started on first need
+
+
+def kernel(function, **options):
+    """``function`` compiled with numba (cached, nogil, plus ``options``); None without numba.
+    """
+    if numba is None:
+        return None
+    return numba.njit(cache=True, nogil=True, **options)(function)
+
+
+def run(use_compiled: bool, compiled_kernel, reference, *args):
+    """``compiled_kernel(*args)`` when asked for and ready for these argument types, else
+    ``reference(*args)`` (the same result), queueing the compilation when it is not."""
+    if not use_compiled or compiled_kernel is None or compiled_kernel in _failed:
+        return reference(*args)
+    try:
+        signature = tuple(compiled_kernel.typeof_pyval(a) for a in args)
+        if signature in compiled_kernel.overloads:
+            return compiled_kernel(*args)
+    except Exception:  # noqa: BLE001 - numba typing/runtime failure: the reference
+        _failed.add(compiled_kernel)
+        return reference(*args)
+    _queue(compiled_kernel, signature)
+    return reference(*args)
+
+
+def wait(timeout_s: float | None = None) -> bool:
+    """Block until every queued compilation is done (at most ``timeout_s``); True if done."""
+    done = threading.Event()
+    _jobs.put(done)
+    _start_compiler()
+    return done.wait(timeout_s)
+
+
+def _queue(compiled_kernel, signature) -> None:
+    with _lock:
+        if (compiled_kernel, signature) in _queued:
+            return
+        _queued.add((compiled_kernel, signature))
+    _jobs.put((compiled_kernel, signature))
+    _start_compiler()
+
+
+def _start_compiler() -> None:
+    global _compiler
+    with _lock:
+        if _compiler is None:
+            _compiler = threading.Thread(target=_compile_forever, name='numba_compiler',
+                                         daemon=True)
+            _compiler.start()
+
+
+def _compile_forever() -> None:
+    while True:
+        job = _jobs.get()
+        if isinstance(job, threading.Event):
+            job.set()
+            continue
+        compiled_kernel, signature = job
+        try:
+            compiled_kernel.compile(signature)  # compiles, or loads numba's on-disk cache
+        except Exception:  # noqa: BLE001 - the reference stays in use for this kernel
+            _failed.add(compiled_kernel)

@@ -49,6 +49,19 @@ def test_offset_cloud_with_the_pose_gives_the_sensor_frame_result(scan):
     assert np.count_nonzero(unaware.ground_mask != reference.ground_mask) > 0.02 * len(scan)
 
 
+def test_height_above_ground_is_in_the_input_frame_with_a_pose(scan):
+    """Regression: point_z was the levelled z while ground_height is in the input's frame, so
+    height_above_ground (the node's FLOAT32 field) was off by sensor_z_m."""
+    offset = np.array([3.0, -2.0, 1.8])
+    params = SegmenterParams(sensor_x_m=3.0, sensor_y_m=-2.0, sensor_z_m=1.8)
+    result = GroundSegmenter(params).segment(scan + offset)
+    reference = GroundSegmenter().segment((scan + offset) - offset)
+    assert np.allclose(result.height_above_ground, reference.height_above_ground, atol=1e-9,
+                       equal_nan=True)
+    assert np.allclose(result.height_above_ground, (scan + offset)[:, 2] - result.ground_height,
+                       equal_nan=True)
+
+
 def test_tilted_cloud_is_levelled_and_heights_come_back_in_its_frame(scan):
     pose = SensorPose(roll=0.05, pitch=0.15)
     tilted = scan @ pose.rotation()  # the cloud as a sensor with that attitude sees it

@@ -499,6 +499,7 @@ class GroundSegmenter:
             result = self._segment(levelled, details)
             result.ground_height = ground_height_in_cloud_frame(levelled, result.ground_height,
                                                                 pose)
+            result.point_z = np.asarray(points)[:, 2]  # the input's z, as ground_height
             return result
 
     def _segment(self, points: np.ndarray, details: bool) -> SegmentationResult:

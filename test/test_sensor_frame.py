@@ -62,6 +62,32 @@ def test_height_above_ground_is_in_the_input_frame_with_a_pose(scan):
                        equal_nan=True)
 
 
+def test_ground_surface_is_in_the_input_frame_with_a_pose(scan):
+    """Regression: the surface (published with the input's header) was in the levelled sensor
+    frame, off by the sensor pose."""
+    offset = np.array([3.0, -2.0, 1.8])
+    params = SegmenterParams(sensor_x_m=3.0, sensor_y_m=-2.0, sensor_z_m=1.8)
+    surface = GroundSegmenter(params).segment(scan + offset).ground_surface
+    reference = GroundSegmenter().segment((scan + offset) - offset).ground_surface
+    assert np.allclose(surface.points(), reference.points() + np.r_[offset, 0.0], atol=1e-4)
+    z, z_std = surface.height_at(scan[:, 0] + 3.0, scan[:, 1] - 2.0)
+    z_ref, std_ref = reference.height_at(scan[:, 0], scan[:, 1])
+    assert np.isfinite(z_ref).mean() > 0.9
+    assert np.allclose(z, z_ref + 1.8, equal_nan=True)
+    assert np.allclose(z_std, std_ref, equal_nan=True)
+    # tilted: the prediction points are p_C = R^T p_L, and height_at finds them again
+    pose = SensorPose(roll=0.05, pitch=0.15)
+    tilted = GroundSegmenter(SegmenterParams(sensor_roll_rad=0.05, sensor_pitch_rad=0.15)) \
+        .segment(scan @ pose.rotation()).ground_surface
+    level = reference.points().astype(np.float64)
+    expected = level[:, :3] @ pose.rotation()
+    got = tilted.points().astype(np.float64)
+    assert got.shape == level.shape
+    assert np.allclose(got[:, :3], expected, atol=1e-3)
+    z_back, _ = tilted.height_at(got[:, 0], got[:, 1])
+    assert np.allclose(z_back, got[:, 2], atol=1e-3)
+
+
 def test_tilted_cloud_is_levelled_and_heights_come_back_in_its_frame(scan):
     pose = SensorPose(roll=0.05, pitch=0.15)
     tilted = scan @ pose.rotation()  # the cloud as a sensor with that attitude sees it

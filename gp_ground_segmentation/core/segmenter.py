@@ -208,7 +208,7 @@ def _ground_at_bin_edges(model: _GroundModel, edges: np.ndarray, need_std: bool)
 
 
 def _ground_surface(model: _GroundModel, grid: RadialGrid, edges, mean, std, point_z, ground,
-                    ground_height, valid_index, k_star) -> GroundSurface:
+                    ground_height, valid_index, k_star, pose) -> GroundSurface:
     """The frame's GroundSurface; ``std`` None: its z_std is computed when first read.
 
     The deferred computations keep the model, the edges, the (N,) result arrays and the points'
@@ -234,7 +234,7 @@ def _ground_surface(model: _GroundModel, grid: RadialGrid, edges, mean, std, poi
 
     return GroundSurface(grid.segment_r_min, grid.bin_width, grid.count.sum(axis=1) > 0, mean,
                          model.training.any(axis=1), std,
-                         compute_std if std is None else None, compute_offset)
+                         compute_std if std is None else None, compute_offset, pose)
 
 
 def _interpolate_at_points(values: np.ndarray, grid: RadialGrid) -> np.ndarray:
@@ -599,6 +599,7 @@ class GroundSegmenter:
                 np.where(grid.has_candidate, theta[1] * model.length_factor, np.nan), edges,
                 mean_full, std_full, threshold, model.gp, model.solution, d_star, feet)
         surface = _ground_surface(model, grid, edges, mean_full, std_full if need_std else None,
-                                  xyz[:, 2], ground, height, valid_index, k_star)
+                                  xyz[:, 2], ground, height, valid_index, k_star,
+                                  p.sensor_pose)
         return SegmentationResult(ground, valid, height, self._theta, timings, stats, extra,
                                   surface, xyz[:, 2])

@@ -88,6 +88,18 @@ def test_ground_surface_is_in_the_input_frame_with_a_pose(scan):
     assert np.allclose(z_back, got[:, 2], atol=1e-3)
 
 
+def test_no_return_points_stay_invalid_with_a_pose(scan):
+    """Regression: the (0, 0, 0) no-return rows of an organized cloud were moved by the pose's
+    offset, became valid and went out as ground or obstacle points."""
+    cloud = scan.copy()
+    cloud[::7] = 0.0
+    params = SegmenterParams(sensor_z_m=0.036, sensor_pitch_rad=0.02)
+    result = GroundSegmenter(params).segment(cloud)
+    assert np.array_equal(result.valid_mask, np.any(cloud != 0.0, axis=1))
+    assert not result.ground_mask[::7].any() and not result.obstacle_mask[::7].any()
+    assert np.isnan(result.ground_height[::7]).all()
+
+
 def test_tilted_cloud_is_levelled_and_heights_come_back_in_its_frame(scan):
     pose = SensorPose(roll=0.05, pitch=0.15)
     tilted = scan @ pose.rotation()  # the cloud as a sensor with that attitude sees it

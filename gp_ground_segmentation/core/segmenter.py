@@ -496,6 +496,8 @@ class GroundSegmenter:
                 return self._segment(points, details)
             # sensor_frame.py: segment in the levelled sensor frame, report heights in ours
             levelled = to_levelled_frame(points, pose)
+            # validity is the input's: the pose must not move a (0, 0, 0) no-return into view
+            levelled[~valid_points_mask(np.asarray(points)[:, :3])] = np.nan
             result = self._segment(levelled, details)
             result.ground_height = ground_height_in_cloud_frame(levelled, result.ground_height,
                                                                 pose)

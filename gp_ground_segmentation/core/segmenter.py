@@ -32,8 +32,9 @@ marks the paper's steps, [ours] our additions (``additions.py``, each with a ``u
 
 The grid is centred at the origin and z is taken as up: a cloud not in the sensor's own frame
 is first moved into the levelled sensor frame with the ``sensor_*`` pose parameters
-(sensor_frame.py; no copy when they are all 0). Labels are per input point; ``ground_height``
-is in the input's frame; ``details`` (grid, lines, GP) are in the levelled frame.
+(sensor_frame.py; no copy when they are all 0). Labels and validity are per input point;
+``ground_height``, ``height_above_ground`` and ``ground_surface`` are in the input's frame;
+``details`` (grid, lines, GP) are in the levelled frame.
 
 Choices where the paper is vague, each a parameter (see params.py):
 

@@ -198,7 +198,7 @@ class GroundSurface:
         x, y = (np.asarray(v, dtype=np.float64) - t for v, t in ((x, pose.x), (y, pose.y)))
         if not pose.has_rotation:
             z, z_std = self._level_height_at(x, y)
-            return z + pose.z, z_std
+            return np.asarray(z + pose.z), z_std
         rot = pose.rotation()
         x, y = np.broadcast_arrays(x, y)
         z = np.zeros(x.shape)  # first guess: the sensor's height (relative to t)
@@ -210,7 +210,7 @@ class GroundSurface:
             # (x, y, z) - t lies on the ground where its levelled z equals the ground there
             z = (ground - rot[2, 0] * x - rot[2, 1] * y) / rot[2, 2]
             z = np.where(np.isnan(z), 0.0, z) if step < _TILT_ITERATIONS - 1 else z
-        return z + pose.z, z_std
+        return np.asarray(z + pose.z), z_std
 
     def _level_height_at(self, x, y, beyond_range: bool = False):
         """height_at in the levelled sensor frame; ``beyond_range``: the height at the nearest

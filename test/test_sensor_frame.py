@@ -2,6 +2,7 @@
 """Clouds not in the sensor frame: the sensor_* pose parameters (core/sensor_frame.py) and the
 'not sensor-centred' warning."""
 
+import time
 from pathlib import Path
 
 import numpy as np
@@ -98,6 +99,16 @@ def test_no_return_points_stay_invalid_with_a_pose(scan):
     assert np.array_equal(result.valid_mask, np.any(cloud != 0.0, axis=1))
     assert not result.ground_mask[::7].any() and not result.obstacle_mask[::7].any()
     assert np.isnan(result.ground_height[::7]).all()
+
+
+def test_total_time_includes_the_pose_transform(scan, monkeypatch):
+    """Regression: timings_ms['total'] (the node's 'segment' time) left out the levelling."""
+    def slow(points, pose):
+        time.sleep(0.2)
+        return to_levelled_frame(points, pose)
+    monkeypatch.setattr(segmenter_module, 'to_levelled_frame', slow)
+    result = GroundSegmenter(SegmenterParams(sensor_z_m=1.8)).segment(scan[:2000])
+    assert result.timings_ms['total'] >= 200.0
 
 
 def test_tilted_cloud_is_levelled_and_heights_come_back_in_its_frame(scan):

@@ -496,6 +496,7 @@ class GroundSegmenter:
             if pose.is_identity:  # a cloud in the sensor frame: no copy
                 return self._segment(points, details)
             # sensor_frame.py: segment in the levelled sensor frame, report heights in ours
+            t_start = time.perf_counter()
             levelled = to_levelled_frame(points, pose)
             # validity is the input's: the pose must not move a (0, 0, 0) no-return into view
             levelled[~valid_points_mask(np.asarray(points)[:, :3])] = np.nan
@@ -503,6 +504,7 @@ class GroundSegmenter:
             result.ground_height = ground_height_in_cloud_frame(levelled, result.ground_height,
                                                                 pose)
             result.point_z = np.asarray(points)[:, 2]  # the input's z, as ground_height
+            result.timings_ms['total'] = (time.perf_counter() - t_start) * 1e3  # with the pose
             return result
 
     def _segment(self, points: np.ndarray, details: bool) -> SegmentationResult:

@@ -159,12 +159,14 @@ class FrameGP:
         sub = mask[self.segments]
         # stable order: training points of each segment first (the anchor first of all)
         order = np.argsort(~sub, axis=1, kind='stable')[:, :n_max]
-        self.valid = np.take_along_axis(sub, order, axis=1)
+        # (S, n) flat index into the padded (M, N[+1]) input of every slot: one gather per
+        # array instead of a row subset and take_along_axis (same values)
+        flat = self.segments[:, None] * mask.shape[1] + order
+        self.valid = mask.reshape(-1)[flat]
         # (S, n) grid bin of every padded slot; -1 for the anchor
         self.bins = order - 1 if anchor is not None else order
         self.is_anchor = self.valid & (self.bins < 0)
-        take = (lambda a: np.take_along_axis(np.asarray(a, dtype=np.float64)[self.segments],
-                                             order, axis=1))
+        take = (lambda a: np.asarray(a, dtype=np.float64).reshape(-1)[flat])
         self.mean = float(np.median(np.asarray(z)[mask])) if mean is None and mask.any() else (
             0.0 if mean is None else float(mean))
         valid = self.valid
@@ -204,8 +206,8 @@ class FrameGP:
         if self.backend == 'numpy':
             self._pair_geometry()  # made once here, shared by the copy
         other = copy.copy(self)
-        slots = np.take_along_axis(np.asarray(noise_var, dtype=np.float64)[self.segments],
-                                   np.maximum(self.bins, 0), axis=1)
+        flat = self.segments[:, None] * self.shape[1] + np.maximum(self.bins, 0)
+        slots = np.asarray(noise_var, dtype=np.float64).reshape(-1)[flat]
         anchor_var = self.anchor.noise_var if self.anchor is not None else 0.0
         other.noise_var = np.where(self.valid, np.where(self.is_anchor, anchor_var, slots), 0.0)
         other._cache = None  # cholesky_fallbacks carries on: it counts the whole chain

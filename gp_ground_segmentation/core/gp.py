@@ -177,6 +177,7 @@ class FrameGP:
         self.counts = valid.sum(axis=1)  # (S,) training points of each row: its first slots
         self.num_points = int(self.counts.sum())
         self._geometry = None  # (q, prefactor) (S, n, n) of the numpy path, made on first use
+        self._grid_slot_index = None  # to_grid's index, made on first use (shared by copies)
         self.backend = resolve_backend(backend)
         self.compiled_error = None  # why the numba kernel failed, if it did (then numpy)
         self.cholesky_fallbacks = 0  # jittered retries of this object and those it came from
@@ -218,10 +219,17 @@ class FrameGP:
         """(S, n) values of the training slots -> (M, N) over the grid's bins (anchor dropped)."""
         slot_values = np.asarray(slot_values)
         out = np.full(self.shape, fill, dtype=slot_values.dtype)
-        keep = self.valid & ~self.is_anchor
-        out[np.broadcast_to(self.segments[:, None], keep.shape)[keep], self.bins[keep]] = (
-            slot_values[keep])
+        keep, grid_index = self._grid_slots()
+        out.reshape(-1)[grid_index] = slot_values[keep]
         return out
+
+    def _grid_slots(self):
+        """(keep (S, n) bool: slots of grid candidates, their flat (M * N) grid indices)."""
+        if self._grid_slot_index is None:
+            keep = self.valid & ~self.is_anchor
+            self._grid_slot_index = (keep, (self.segments[:, None] * self.shape[1]
+                                            + self.bins)[keep])
+        return self._grid_slot_index
 
     # -- core linear algebra ---------------------------------------------------------------
     def kernel(self, theta):

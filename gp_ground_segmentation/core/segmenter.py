@@ -237,17 +237,24 @@ def _ground_surface(model: _GroundModel, grid: RadialGrid, edges, mean, std, poi
                          compute_std if std is None else None, compute_offset)
 
 
-def _interpolate_at_points(values: np.ndarray, grid: RadialGrid) -> np.ndarray:
+def _point_edge_indices(grid: RadialGrid) -> tuple:
+    """Flat (M, N + 1) indices of every point's inner and outer bin edge, for
+    :func:`_interpolate_at_points` (made once a frame: the mean and the threshold share them)."""
+    inner = grid.point_segment * np.int32(grid.num_bins + 1) + grid.point_bin
+    return inner, inner + 1
+
+
+def _interpolate_at_points(values: np.ndarray, grid: RadialGrid, edges: tuple) -> np.ndarray:
     """(M, N + 1) values at bin edges -> every point, linearly along r within its bin.
 
-    Flat gathers in the points' precision: at 2 M points every float64 temporary is 16 MB.
+    ``edges``: :func:`_point_edge_indices` of ``grid``. Flat gathers in the points' precision:
+    at 2 M points every float64 temporary is 16 MB.
     """
     frac = grid.point_bin_fraction
     flat = values.ravel().astype(frac.dtype)
-    edge = grid.point_segment * np.int32(grid.num_bins + 1) + grid.point_bin
-    out = flat[edge]
-    edge += 1
-    step = flat[edge]
+    inner, outer = edges
+    out = flat[inner]
+    step = flat[outer]
     step -= out
     step *= frac
     out += step
@@ -566,10 +573,11 @@ class GroundSegmenter:
         timings['predict'] = (time.perf_counter() - t) * 1e3
 
         t = time.perf_counter()
-        z_hat = _interpolate_at_points(mean_full, grid)
+        point_edges = _point_edge_indices(grid)
+        z_hat = _interpolate_at_points(mean_full, grid, point_edges)
         edge_threshold = self._threshold_at_bin_edges(edges, mean_full, std_full)
         if np.ndim(edge_threshold):
-            threshold = _interpolate_at_points(edge_threshold, grid)
+            threshold = _interpolate_at_points(edge_threshold, grid, point_edges)
         else:
             threshold = edge_threshold
         ground_v = z - z_hat <= threshold

@@ -273,6 +273,13 @@ def _fill_along_rows(values: np.ndarray, known: np.ndarray) -> np.ndarray:
     return np.take_along_axis(values, pick, axis=1)
 
 
+def _first_known_along_rows(values: np.ndarray, known: np.ndarray) -> np.ndarray:
+    """Column 0 of ``_fill_along_rows(values, known)`` without filling the rows: each row's
+    first known entry, the last entry in a row without one."""
+    first = np.where(known.any(axis=1), known.argmax(axis=1), values.shape[1] - 1)
+    return values[np.arange(values.shape[0]), first]
+
+
 class GroundSegmenter:
     """Stateful segmenter: theta is warm-started from one frame to the next.
 
@@ -414,7 +421,7 @@ class GroundSegmenter:
                                                lines.line_count, lines.intercept)
         stats['anchor_height_m'] = height
         return GroundAnchor(height, p.anchor_std_m ** 2, grid.has_candidate.any(axis=1),
-                            _fill_along_rows(d, training)[:, 0])
+                            _first_known_along_rows(d, training))
 
     def _reject_outliers(self, gp: FrameGP, sol: GPSolution, outliers):
         """One robust pass: (GP, solution, outliers) with the new outliers' noise made huge."""

@@ -39,3 +39,39 @@ def test_a_kernel_that_does_not_compile_leaves_the_reference():
     assert compiled.wait(60.0)
     for _ in range(2):  # never retried, never raised
         assert compiled.run(True, kernel, _minus_one, 1.0) == 0.0
+
+
+def _sum_plus_one(x):
+    return x.sum() + 1.0
+
+
+def _sum_minus_one(x):
+    return x.sum() - 1.0
+
+
+def test_argument_types_seen_once_are_not_typed_again_and_others_still_wait():
+    """The cheap argument key (what skips numba's typing once a signature is known compiled)
+    must tell apart every array numba types differently: each new kind takes the reference
+    until its own compilation is done."""
+    import numba
+    import numpy as np
+    kernel = numba.njit(_sum_plus_one)
+    base = np.arange(6.0)
+    readonly = base.copy()
+    readonly.flags.writeable = False
+    kinds = [base, base.astype(np.float32), readonly, base[::2], base.reshape(2, 3),
+             np.asfortranarray(base.reshape(2, 3))]
+    for x in kinds:
+        assert compiled.run(True, kernel, _sum_minus_one, x) == x.sum() - 1.0  # not yet
+        assert compiled.wait(60.0)
+        assert compiled.run(True, kernel, _sum_minus_one, x) == x.sum() + 1.0
+        assert compiled.run(True, kernel, _sum_minus_one, x) == x.sum() + 1.0  # key known
+    assert len(set(compiled._argument_key((x,)) for x in kinds)) == len(kinds)
+
+
+def test_argument_key_covers_scalars_and_refuses_what_it_cannot_describe():
+    import numpy as np
+    key = compiled._argument_key((1.0, 2, True, np.float32(1)))
+    assert key == (float, int, bool, np.float32)
+    assert compiled._argument_key((2 ** 63,)) is None  # numba: uint64, not int64
+    assert compiled._argument_key(((1.0, 2.0),)) is None  # tuples: numba's typing decides

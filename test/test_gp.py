@@ -172,6 +172,9 @@ def test_frame_gp_anchor_is_an_explicit_first_point():
         assert gp.d[s, 0] == anchor.length_factor[m] and gp.noise_var[s, 0] == 0.09
         np.testing.assert_array_equal(gp.bins[s, 1:][gp.valid[s, 1:]], np.flatnonzero(mask[m]))
     np.testing.assert_array_equal(gp.to_grid(gp.valid, False), mask)
+    # slot values land on their own bins (the anchor's nowhere), also from a with_noise copy
+    for frame in (gp, gp.with_noise(np.full(mask.shape, 0.5))):
+        np.testing.assert_array_equal(frame.to_grid(frame.r, np.nan), np.where(mask, r, np.nan))
     # the LML is that of the dense problem with the anchor as one more point
     theta = np.array([0.6, 2.0, 0.1])
     r2, z2, d2, mask2 = (np.concatenate([col, a], axis=1) for col, a in (

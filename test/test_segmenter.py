@@ -305,3 +305,18 @@ def test_theta_stays_inside_bounds_when_scenes_alternate(scans):
             assert np.all(ratios >= 1 / p.optimizer_max_step_ratio * (1 - 1e-9))
             assert truth_metrics(result.ground_mask, scans[name].is_ground)['recall'] > 0.95
     assert theta.sigma_n < p.sigma_n_max_m and theta.sigma_f < p.sigma_f_max_m
+
+
+def test_first_known_along_rows_is_column_0_of_the_filled_rows():
+    """The anchor's length factor takes the shortcut; it must equal the full fill's column 0
+    (rows with a known first entry, a later one, none at all)."""
+    from gp_ground_segmentation.core.segmenter import (_fill_along_rows,
+                                                       _first_known_along_rows)
+    rng = np.random.default_rng(3)
+    values = rng.normal(size=(40, 7))
+    known = rng.random((40, 7)) < 0.25
+    known[0] = False
+    known[1] = [False] * 6 + [True]
+    known[2, 0] = True
+    np.testing.assert_array_equal(_first_known_along_rows(values, known),
+                                  _fill_along_rows(values, known)[:, 0])

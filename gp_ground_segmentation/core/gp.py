@@ -159,12 +159,14 @@ class FrameGP:
         sub = mask[self.segments]
         # stable order: training points of each segment first (the anchor first of all)
         order = np.argsort(~sub, axis=1, kind='stable')[:, :n_max]
-        self.valid = np.take_along_axis(sub, order, axis=1)
+        # (S, n) flat index into the padded (M, N[+1]) input of every slot: one gather per
+        # array instead of a row subset and take_along_axis (same values)
+        flat = self.segments[:, None] * mask.shape[1] + order
+        self.valid = mask.reshape(-1)[flat]
         # (S, n) grid bin of every padded slot; -1 for the anchor
         self.bins = order - 1 if anchor is not None else order
         self.is_anchor = self.valid & (self.bins < 0)
-        take = (lambda a: np.take_along_axis(np.asarray(a, dtype=np.float64)[self.segments],
-                                             order, axis=1))
+        take = (lambda a: np.asarray(a, dtype=np.float64).reshape(-1)[flat])
         self.mean = float(np.median(np.asarray(z)[mask])) if mean is None and mask.any() else (
             0.0 if mean is None else float(mean))
         valid = self.valid
@@ -175,6 +177,7 @@ class FrameGP:
         self.counts = valid.sum(axis=1)  # (S,) training points of each row: its first slots
         self.num_points = int(self.counts.sum())
         self._geometry = None  # (q, prefactor) (S, n, n) of the numpy path, made on first use
+        self._grid_slot_index = None  # to_grid's index, made on first use (shared by copies)
         self.backend = resolve_backend(backend)
         self.compiled_error = None  # why the numba kernel failed, if it did (then numpy)
         self.cholesky_fallbacks = 0  # jittered retries of this object and those it came from
@@ -204,8 +207,8 @@ class FrameGP:
         if self.backend == 'numpy':
             self._pair_geometry()  # made once here, shared by the copy
         other = copy.copy(self)
-        slots = np.take_along_axis(np.asarray(noise_var, dtype=np.float64)[self.segments],
-                                   np.maximum(self.bins, 0), axis=1)
+        flat = self.segments[:, None] * self.shape[1] + np.maximum(self.bins, 0)
+        slots = np.asarray(noise_var, dtype=np.float64).reshape(-1)[flat]
         anchor_var = self.anchor.noise_var if self.anchor is not None else 0.0
         other.noise_var = np.where(self.valid, np.where(self.is_anchor, anchor_var, slots), 0.0)
         other._cache = None  # cholesky_fallbacks carries on: it counts the whole chain
@@ -216,10 +219,17 @@ class FrameGP:
         """(S, n) values of the training slots -> (M, N) over the grid's bins (anchor dropped)."""
         slot_values = np.asarray(slot_values)
         out = np.full(self.shape, fill, dtype=slot_values.dtype)
-        keep = self.valid & ~self.is_anchor
-        out[np.broadcast_to(self.segments[:, None], keep.shape)[keep], self.bins[keep]] = (
-            slot_values[keep])
+        keep, grid_index = self._grid_slots()
+        out.reshape(-1)[grid_index] = slot_values[keep]
         return out
+
+    def _grid_slots(self):
+        """(keep (S, n) bool: slots of grid candidates, their flat (M * N) grid indices)."""
+        if self._grid_slot_index is None:
+            keep = self.valid & ~self.is_anchor
+            self._grid_slot_index = (keep, (self.segments[:, None] * self.shape[1]
+                                            + self.bins)[keep])
+        return self._grid_slot_index
 
     # -- core linear algebra ---------------------------------------------------------------
     def kernel(self, theta):

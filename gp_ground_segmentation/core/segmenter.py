@@ -238,17 +238,24 @@ def _ground_surface(model: _GroundModel, grid: RadialGrid, edges, mean, std, poi
                          compute_std if std is None else None, compute_offset, pose)
 
 
-def _interpolate_at_points(values: np.ndarray, grid: RadialGrid) -> np.ndarray:
+def _point_edge_indices(grid: RadialGrid) -> tuple:
+    """Flat (M, N + 1) indices of every point's inner and outer bin edge, for
+    :func:`_interpolate_at_points` (made once a frame: the mean and the threshold share them)."""
+    inner = grid.point_segment * np.int32(grid.num_bins + 1) + grid.point_bin
+    return inner, inner + 1
+
+
+def _interpolate_at_points(values: np.ndarray, grid: RadialGrid, edges: tuple) -> np.ndarray:
     """(M, N + 1) values at bin edges -> every point, linearly along r within its bin.
 
-    Flat gathers in the points' precision: at 2 M points every float64 temporary is 16 MB.
+    ``edges``: :func:`_point_edge_indices` of ``grid``. Flat gathers in the points' precision:
+    at 2 M points every float64 temporary is 16 MB.
     """
     frac = grid.point_bin_fraction
     flat = values.ravel().astype(frac.dtype)
-    edge = grid.point_segment * np.int32(grid.num_bins + 1) + grid.point_bin
-    out = flat[edge]
-    edge += 1
-    step = flat[edge]
+    inner, outer = edges
+    out = flat[inner]
+    step = flat[outer]
     step -= out
     step *= frac
     out += step
@@ -265,6 +272,13 @@ def _fill_along_rows(values: np.ndarray, known: np.ndarray) -> np.ndarray:
     pick = np.where(left >= 0, left, right)
     pick = np.clip(pick, 0, n - 1)
     return np.take_along_axis(values, pick, axis=1)
+
+
+def _first_known_along_rows(values: np.ndarray, known: np.ndarray) -> np.ndarray:
+    """Column 0 of ``_fill_along_rows(values, known)`` without filling the rows: each row's
+    first known entry, the last entry in a row without one."""
+    first = np.where(known.any(axis=1), known.argmax(axis=1), values.shape[1] - 1)
+    return values[np.arange(values.shape[0]), first]
 
 
 class GroundSegmenter:
@@ -408,7 +422,7 @@ class GroundSegmenter:
                                                lines.line_count, lines.intercept)
         stats['anchor_height_m'] = height
         return GroundAnchor(height, p.anchor_std_m ** 2, grid.has_candidate.any(axis=1),
-                            _fill_along_rows(d, training)[:, 0])
+                            _first_known_along_rows(d, training))
 
     def _reject_outliers(self, gp: FrameGP, sol: GPSolution, outliers):
         """One robust pass: (GP, solution, outliers) with the new outliers' noise made huge."""
@@ -572,10 +586,11 @@ class GroundSegmenter:
         timings['predict'] = (time.perf_counter() - t) * 1e3
 
         t = time.perf_counter()
-        z_hat = _interpolate_at_points(mean_full, grid)
+        point_edges = _point_edge_indices(grid)
+        z_hat = _interpolate_at_points(mean_full, grid, point_edges)
         edge_threshold = self._threshold_at_bin_edges(edges, mean_full, std_full)
         if np.ndim(edge_threshold):
-            threshold = _interpolate_at_points(edge_threshold, grid)
+            threshold = _interpolate_at_points(edge_threshold, grid, point_edges)
         else:
             threshold = edge_threshold
         ground_v = z - z_hat <= threshold

@@ -24,12 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 
-try:  # numba is a regular dependency, but the package must still work without it
-    import numba
-except ImportError:  # pragma: no cover - exercised by the fallback tests via AVAILABLE
-    numba = None
-
-AVAILABLE = numba is not None
+from .compiled import AVAILABLE, kernel  # numba (cached, nogil) when it imports
 
 
 def _solve_batched(r, d, z, noise_var, counts, sigma_f, gain, sigma_n):
@@ -181,9 +176,9 @@ def _predict_batched(r, d, counts, alpha, a_inv, r_star, d_star, sigma_f, gain, 
 
 
 if AVAILABLE:
-    solve_batched = numba.njit(cache=True, nogil=True)(_solve_batched)
-    std_batched = numba.njit(cache=True, nogil=True)(_std_batched)  # before predict: it calls it
-    predict_batched = numba.njit(cache=True, nogil=True)(_predict_batched)
+    solve_batched = kernel(_solve_batched)
+    std_batched = kernel(_std_batched)  # before predict: it calls it
+    predict_batched = kernel(_predict_batched)
 else:  # pragma: no cover - the numpy backend is used instead; these are never called
     solve_batched, std_batched, predict_batched = _solve_batched, _std_batched, _predict_batched
 

@@ -70,8 +70,14 @@ class RadialGrid:
 
     def bin_edges(self) -> np.ndarray:
         """(M, N + 1) radial position of each bin's edges (m), from r_min to r_max."""
-        k = np.arange(self.num_bins + 1)
-        return self.segment_r_min[:, None] + k[None, :] * self.bin_width[:, None]
+        return bin_edges(self.segment_r_min, self.bin_width, self.num_bins)
+
+
+def bin_edges(segment_r_min: np.ndarray, bin_width: np.ndarray, num_bins: int) -> np.ndarray:
+    """(M, N + 1) radial position of the bin edges of segments starting at ``segment_r_min``
+    with bins ``bin_width`` wide (m)."""
+    k = np.arange(num_bins + 1)
+    return segment_r_min[:, None] + k[None, :] * bin_width[:, None]
 
 
 def segment_of(x: np.ndarray, y: np.ndarray, num_segments: int) -> np.ndarray:

@@ -34,6 +34,7 @@ from __future__ import annotations
 import numpy as np
 
 from .compiled import kernel, run
+from .grid import segment_of
 
 __all__ = ['vertical_structure_mask']
 
@@ -46,19 +47,19 @@ _MAX_CELL_M = 0.5
 
 def _polar_cells(x, y, r, cell_m: float, cell_rad: float):
     """(azimuth cell, radial cell) of points at x, y and range r, and the number of azimuth cells.
+
+    Float64 maths whatever the input precision: a float32 cloud and its float64 copy must put
+    every point in the same cell. Azimuth cells are the grid's segments, only finer.
     """
     n_az = max(1, int(np.ceil(2.0 * np.pi / cell_rad)))
-    dtype = x.dtype
-    az = ((np.arctan2(y, x) + dtype.type(np.pi)) * dtype.type(n_az / (2.0 * np.pi))
-          ).astype(np.int32)
-    np.minimum(az, n_az - 1, out=az)  # arctan2 may return exactly +pi
+    az = segment_of(x, y, n_az)
     # cells of cell_m out to r_square, where an azimuth cell is cell_m wide, then cells growing
     # with r: index r_square / cell_m + ln(r / r_square) / cell_rad, continuous at r_square
     r_square = cell_m / cell_rad
-    ring = r * dtype.type(1.0 / cell_m)
+    r = np.asarray(r, dtype=np.float64)
+    ring = r * (1.0 / cell_m)
     far = np.flatnonzero(r > r_square)
-    ring[far] = dtype.type(r_square / cell_m) + np.log(r[far] * dtype.type(1.0 / r_square)) \
-        * dtype.type(1.0 / cell_rad)
+    ring[far] = r_square / cell_m + np.log(r[far] * (1.0 / r_square)) * (1.0 / cell_rad)
     return az, ring.astype(np.int32), n_az
 
 
@@ -96,13 +97,8 @@ def vertical_structure_mask(x: np.ndarray, y: np.ndarray, z: np.ndarray,
     cand, r_cand = _within(np.flatnonzero(candidate), r, limit)
     if cand.size == 0 or column.size == 0:
         return out
-    # cells in float64 whatever the input precision: a float32 cloud and its float64 copy must
-    # put every point in the same cell (the subsets are small; the cast costs little)
-    f64 = np.float64
-    az_col, ring_col, n_az = _polar_cells(x[column].astype(f64), y[column].astype(f64),
-                                          r_col.astype(f64), cell_m, cell_rad)
-    az_cand, ring_cand, _ = _polar_cells(x[cand].astype(f64), y[cand].astype(f64),
-                                         r_cand.astype(f64), cell_m, cell_rad)
+    az_col, ring_col, n_az = _polar_cells(x[column], y[column], r_col, cell_m, cell_rad)
+    az_cand, ring_cand, _ = _polar_cells(x[cand], y[cand], r_cand, cell_m, cell_rad)
     width = int(max(ring_col.max(), ring_cand.max())) + 3
     # the step in z's precision, as numpy compares a float32 difference with a Python float
     args = (az_col, ring_col, z[column], az_cand, ring_cand, z[cand], n_az, width,

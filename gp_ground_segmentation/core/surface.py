@@ -43,7 +43,7 @@ from typing import Callable, Optional
 import numpy as np
 
 from .compiled import kernel, run
-from .grid import segment_of
+from .grid import bin_edges, segment_of
 from .sensor_frame import SensorPose
 
 # Tolerance (in bins) of height_at's range test: round-off between the grid's r and the one
@@ -106,8 +106,7 @@ class GroundSurface:
     @cached_property
     def r(self) -> np.ndarray:
         """Range of each prediction point: the bin edges of its segment (m)."""
-        k = np.arange(self.num_bins + 1)
-        return self._r_min[:, None] + k[None, :] * self._width[:, None]
+        return bin_edges(self._r_min, self._width, self.num_bins)
 
     @cached_property
     def azimuth(self) -> np.ndarray:

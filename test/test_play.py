@@ -40,32 +40,50 @@ def _tool(*args):
 
 def test_play_feeds_the_live_node_with_restamp_and_clock(pcd_dir, ros_harness):
     from rclpy.parameter import Parameter
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
     from rosgraph_msgs.msg import Clock
+    from sensor_msgs.msg import PointCloud2
     # Topics of our own: other test runs on this machine may share the DDS domain.
     prefix = f'/gp_play_{os.getpid()}_{uuid.uuid4().hex[:8]}'
-    # a slot for every frame: under load the latest-wins slot would (rightly) drop some
+    # Every frame must arrive, so nothing on the way may drop one: a slot for every frame
+    # (under load the latest-wins slot would rightly drop some) and reliable keep-last FRAMES
+    # on every link (play -> node, node -> peer and hz) through the node's qos_overrides. With
+    # the default best-effort / depth-1 links a loaded machine loses frames by design.
+    overrides = [Parameter('queue_size', value=FRAMES),
+                 Parameter(f'qos_overrides.{prefix}/points.subscription.reliability',
+                           value='reliable'),
+                 Parameter(f'qos_overrides.{prefix}/points.subscription.depth', value=FRAMES)]
+    overrides += [Parameter(f'qos_overrides.{prefix}/{out}.publisher.depth', value=FRAMES)
+                  for out in ('ground', 'obstacles')]
     h = ros_harness(context_args=['--ros-args', '-r', f'points:={prefix}/points',
                                   '-r', f'ground:={prefix}/ground',
                                   '-r', f'obstacles:={prefix}/obstacles'],
-                    node_kwargs={'parameter_overrides': [Parameter('queue_size',
-                                                                   value=FRAMES)]})
-    clocks = []
+                    node_kwargs={'parameter_overrides': overrides})
+    [endpoint] = [e for e in h.node.get_subscriptions_info_by_topic(f'{prefix}/points')
+                  if e.node_name == h.node.get_name()]
+    assert endpoint.qos_profile.reliability == ReliabilityPolicy.RELIABLE  # override applied
+    clocks, ground, obstacles = [], [], []
+    deep = QoSProfile(depth=FRAMES, reliability=ReliabilityPolicy.RELIABLE)
     h.peer.create_subscription(Clock, '/clock', lambda m: clocks.append(m), 10)
+    h.peer.create_subscription(PointCloud2, f'{prefix}/ground', ground.append, deep)
+    h.peer.create_subscription(PointCloud2, f'{prefix}/obstacles', obstacles.append, deep)
     hz = _tool('hz', f'{prefix}/ground', f'{prefix}/obstacles', '--duration', '20',
-               '--period', '100')
-    # hz subscribes once it has seen the topics: wait for it (peer + hz on each output)
-    assert wait_for(lambda: h.node.count_subscribers(f'{prefix}/ground') >= 2
-                    and h.node.count_subscribers(f'{prefix}/obstacles') >= 2, 15.0)
+               '--period', '100', '--qos-reliability', 'reliable', '--qos-depth', str(FRAMES))
+    # hz subscribes once it has seen the topics: wait for it (2 peer subscriptions + hz)
+    assert wait_for(lambda: h.node.count_subscribers(f'{prefix}/ground') >= 3
+                    and h.node.count_subscribers(f'{prefix}/obstacles') >= 3, 15.0)
     play = _tool('play', str(pcd_dir), '--topic', f'{prefix}/points', '--frame-id', 'base_lidar',
-                 '--rate', '2', '--restamp', '--clock', '--wait-for-subscriber', '10')
+                 '--rate', '2', '--restamp', '--clock', '--wait-for-subscriber', '10',
+                 '--qos-reliability', 'reliable', '--qos-depth', str(FRAMES))
     out, err = play.communicate(timeout=60)
     assert play.returncode == 0, err
     assert f'published {FRAMES} frame(s)' in err and 'Traceback' not in err
-    assert wait_for(lambda: len(h.ground) >= FRAMES, 30.0), len(h.ground)
-    assert len(h.ground) == len(h.obstacles) == FRAMES
-    assert h.ground[0].header.frame_id == 'base_lidar'
+    assert wait_for(lambda: len(ground) >= FRAMES and len(obstacles) >= FRAMES, 30.0), \
+        (len(ground), len(obstacles), h.node.window.frames_received)
+    assert len(ground) == len(obstacles) == FRAMES
+    assert ground[0].header.frame_id == 'base_lidar'
     # --restamp --clock: stamps are the bag time (i * 0.1 s), and /clock ran with it
-    stamps = [m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec for m in h.ground]
+    stamps = [m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec for m in ground]
     assert stamps == pytest.approx([0.1 * i for i in range(FRAMES)], abs=1e-6)
     assert clocks and max(c.clock.sec + 1e-9 * c.clock.nanosec for c in clocks) >= 0.4 - 1e-6
     hz_out, hz_err = hz.communicate(timeout=60)
@@ -108,3 +126,8 @@ def test_play_bad_input_is_one_line(tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.startswith('gp-ground-seg play: error:') and len(err.strip().splitlines()) == 1
     assert main(['play', str(tmp_path), '--rate', '0']) == 2
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as bad_depth:  # argparse: usage + one error line, status 2
+        main(['play', str(tmp_path), '--qos-depth', '0'])
+    assert bad_depth.value.code == 2
+    assert 'expected an integer >= 1' in capsys.readouterr().err

@@ -14,7 +14,6 @@ Both end on Ctrl-C (or SIGTERM) with exit status 0 and a closing summary line.
 
 from __future__ import annotations
 
-import copy
 import importlib
 import sys
 import time
@@ -41,6 +40,38 @@ def _to_time_msg(ns: int):
     return Time(sec=int(ns // 1_000_000_000), nanosec=int(ns % 1_000_000_000))
 
 
+RELIABILITY_CHOICES = ('best_effort', 'reliable')
+
+
+def qos_profile(reliability: str, depth: int):
+    """A keep-last QoS profile of ``depth`` with ``reliability`` (one of RELIABILITY_CHOICES,
+    the spelling of ``ros2 topic --qos-reliability``), volatile, as the sensor-data profile."""
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    policy = {'best_effort': ReliabilityPolicy.BEST_EFFORT,
+              'reliable': ReliabilityPolicy.RELIABLE}[reliability]
+    return QoSProfile(depth=depth, reliability=policy)
+
+
+def add_qos_options(parser, depth: int, what: str) -> None:
+    """--qos-reliability / --qos-depth, named as in ``ros2 topic echo``."""
+    parser.add_argument('--qos-reliability', choices=RELIABILITY_CHOICES, default='best_effort',
+                        help=f'reliability of the {what} (default best_effort; reliable loses '
+                        'no message between reliable endpoints)')
+    parser.add_argument('--qos-depth', type=_positive_int, default=depth, metavar='N',
+                        help=f'keep-last history depth of the {what} (default {depth})')
+
+
+def _positive_int(text: str) -> int:
+    import argparse
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f'expected an integer >= 1, got {text!r}')
+    return value
+
+
 # ---------------------------------------------------------------------------------------------
 # play
 # ---------------------------------------------------------------------------------------------
@@ -48,14 +79,13 @@ def _to_time_msg(ns: int):
 class _Player:
     """Publishes frames at their recorded pace (bag time / rate), optionally /clock."""
 
-    def __init__(self, node, topic: str, rate: float, restamp: bool, clock: bool):
-        from rclpy.qos import qos_profile_sensor_data
+    def __init__(self, node, topic: str, rate: float, restamp: bool, clock: bool,
+                 reliability: str = 'best_effort', depth: int = 5):
         from sensor_msgs.msg import PointCloud2
         self.node = node
         self.rate = rate
         self.restamp = restamp
-        # copy: rclpy may write QoS overrides into the profile it is given
-        self.pub = node.create_publisher(PointCloud2, topic, copy.copy(qos_profile_sensor_data))
+        self.pub = node.create_publisher(PointCloud2, topic, qos_profile(reliability, depth))
         self.clock_pub = None
         if clock:
             from rosgraph_msgs.msg import Clock
@@ -115,7 +145,8 @@ def cmd_play(args) -> int:
     try:
         import rclpy
         node = rclpy.create_node('gp_ground_seg_play', context=context)
-        player = _Player(node, source.topic, args.rate, args.restamp, args.clock)
+        player = _Player(node, source.topic, args.rate, args.restamp, args.clock,
+                         args.qos_reliability, args.qos_depth)
         deadline = time.monotonic() + args.wait_for_subscriber
         while player.pub.get_subscription_count() == 0 and time.monotonic() < deadline:
             time.sleep(0.05)
@@ -201,7 +232,6 @@ class _TopicStats:
 
 
 def cmd_hz(args) -> int:
-    from rclpy.qos import QoSProfile, ReliabilityPolicy
     from .cli import CliError
     from .bag import normalize_topic
 
@@ -228,10 +258,11 @@ def cmd_hz(args) -> int:
                 for topic in sorted(pending):
                     if topic in known:
                         msg_type = _message_class(known[topic][0])
-                        # best effort matches reliable and best-effort publishers alike
+                        # best effort (the default) matches reliable and best-effort
+                        # publishers alike; reliable loses nothing from a reliable publisher
                         node.create_subscription(
                             msg_type, topic, stats[topic].add,
-                            QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT))
+                            qos_profile(args.qos_reliability, args.qos_depth))
                         pending.discard(topic)
             executor.spin_once(timeout_sec=0.05)
             if time.monotonic() >= next_print:
@@ -286,6 +317,7 @@ def register(sub) -> None:
     p.add_argument('--wait-for-subscriber', type=float, default=5.0, metavar='S',
                    help='wait up to S seconds for a subscriber before the first frame '
                    '(default 5; 0: start at once)')
+    add_qos_options(p, 5, 'publisher')
     p.set_defaults(func=cmd_play)
 
     p = sub.add_parser('hz', help='print the rates of topics (like ros2 topic hz)',
@@ -300,4 +332,5 @@ def register(sub) -> None:
                    help='print every S seconds (default 1)')
     p.add_argument('--duration', type=float, default=None, metavar='S',
                    help='stop after S seconds')
+    add_qos_options(p, 10, 'subscriptions')
     p.set_defaults(func=cmd_hz)

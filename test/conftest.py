@@ -86,12 +86,16 @@ class RosHarness:
             self.lock = threading.Lock()
             self.ground, self.obstacles, self.diagnostics = [], [], []
             self.surface = []
+            # The node's reliable output matched with a deep reader: a loaded machine that
+            # runs the peer's callbacks late must not lose an output in the peer's own history.
+            deep_reader = QoSProfile(depth=100, reliability=OUTPUT_QOS.reliability,
+                                  durability=OUTPUT_QOS.durability)
             self.peer.create_subscription(PointCloud2, 'ground', self._collect(self.ground),
-                                          OUTPUT_QOS)
+                                          deep_reader)
             self.peer.create_subscription(PointCloud2, 'obstacles',
-                                          self._collect(self.obstacles), OUTPUT_QOS)
+                                          self._collect(self.obstacles), deep_reader)
             self.peer.create_subscription(PointCloud2, 'ground_surface',
-                                          self._collect(self.surface), OUTPUT_QOS)
+                                          self._collect(self.surface), deep_reader)
             self.peer.create_subscription(DiagnosticArray, '/diagnostics',
                                           self._collect(self.diagnostics), 10)
             # A RELIABLE writer matches the best-effort subscription (effective: best effort).

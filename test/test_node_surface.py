@@ -78,3 +78,27 @@ def test_switches_are_live_settable_and_validated(kitti_msgs, ros_harness):
     msg = kitti_msgs[1]
     h.publish_and_wait(msg)
     assert wait_for(lambda: h.surface_for(msg.header.stamp), 10.0) is not None
+
+
+def test_surface_is_built_only_while_subscribed(kitti_msgs, ros_harness):
+    """Lazy surface: with publish_ground_surface on but no subscriber on ground_surface, the
+    node spends nothing on it (no 'surface' stage time); a subscriber turns it back on."""
+    h = ros_harness()
+    node = h.node
+    subscriptions = list(h.peer.subscriptions)
+    [surface_sub] = [s for s in subscriptions if s.topic_name.endswith('/ground_surface')]
+    topic, qos = surface_sub.topic_name, surface_sub.qos_profile
+    h.peer.destroy_subscription(surface_sub)
+    assert wait_for(lambda: node.count_subscribers(topic) == 0, 10.0)
+    h.publish_and_wait(kitti_msgs[0])
+    assert node.window.frames_processed == 1
+    assert not any('surface' in t for t in node.window.snapshot()['timings']), \
+        'surface built with nobody subscribed'
+    received = []
+    h.peer.create_subscription(type(kitti_msgs[0]), topic, received.append,
+                               qos)
+    assert wait_for(lambda: node.count_subscribers(topic) == 1, 10.0)
+    msg = kitti_msgs[1]
+    h.publish_and_wait(msg)
+    assert wait_for(lambda: any(m.header.stamp == msg.header.stamp for m in received), 10.0)
+    assert 'surface' in node.window.snapshot()['timings'][-1]

@@ -89,7 +89,7 @@ class RosHarness:
             # The node's reliable output matched with a deep reader: a loaded machine that
             # runs the peer's callbacks late must not lose an output in the peer's own history.
             deep_reader = QoSProfile(depth=100, reliability=OUTPUT_QOS.reliability,
-                                  durability=OUTPUT_QOS.durability)
+                                     durability=OUTPUT_QOS.durability)
             self.peer.create_subscription(PointCloud2, 'ground', self._collect(self.ground),
                                           deep_reader)
             self.peer.create_subscription(PointCloud2, 'obstacles',

@@ -74,12 +74,13 @@ def test_play_feeds_the_live_node_with_restamp_and_clock(pcd_dir, ros_harness):
                     and h.node.count_subscribers(f'{prefix}/obstacles') >= 3, 15.0)
     play = _tool('play', str(pcd_dir), '--topic', f'{prefix}/points', '--frame-id', 'base_lidar',
                  '--rate', '2', '--restamp', '--clock', '--wait-for-subscriber', '10',
-                 '--qos-reliability', 'reliable', '--qos-depth', str(FRAMES))
+                 '--delay', '1', '--qos-reliability', 'reliable', '--qos-depth', str(FRAMES))
     out, err = play.communicate(timeout=60)
     assert play.returncode == 0, err
     assert f'published {FRAMES} frame(s)' in err and 'Traceback' not in err
     assert wait_for(lambda: len(ground) >= FRAMES and len(obstacles) >= FRAMES, 30.0), \
-        (len(ground), len(obstacles), h.node.window.frames_received)
+        (len(ground), len(obstacles), h.node.window.frames_received,
+         [m.header.stamp.nanosec for m in ground])
     assert len(ground) == len(obstacles) == FRAMES
     assert ground[0].header.frame_id == 'base_lidar'
     # --restamp --clock: stamps are the bag time (i * 0.1 s), and /clock ran with it
@@ -126,6 +127,7 @@ def test_play_bad_input_is_one_line(tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.startswith('gp-ground-seg play: error:') and len(err.strip().splitlines()) == 1
     assert main(['play', str(tmp_path), '--rate', '0']) == 2
+    assert main(['play', str(tmp_path), '--delay', '-1']) == 2
     capsys.readouterr()
     with pytest.raises(SystemExit) as bad_depth:  # argparse: usage + one error line, status 2
         main(['play', str(tmp_path), '--qos-depth', '0'])

@@ -123,6 +123,14 @@ class _Player:
         self.pub.publish(msg)
         self.published += 1
 
+    def flush(self, timeout_s: float = 5.0) -> None:
+        """A reliable publisher: wait (at most ``timeout_s``) until every subscriber has
+        acknowledged every frame, so that leaving right after the last one loses nothing."""
+        from rclpy.duration import Duration
+        from rclpy.qos import ReliabilityPolicy
+        if self.pub.qos_profile.reliability == ReliabilityPolicy.RELIABLE:
+            self.pub.wait_for_all_acked(Duration(nanoseconds=int(timeout_s * 1e9)))
+
 
 def cmd_play(args) -> int:
     from .bag import SYNTHETIC_PERIOD_NS, FrameSource
@@ -130,6 +138,8 @@ def cmd_play(args) -> int:
 
     if not args.rate > 0:
         raise CliError('--rate must be > 0')
+    if not args.delay >= 0:
+        raise CliError('--delay must be >= 0')
     source = FrameSource(args.inputs, args.topic, args.max_frames, args.frame_id)
     with source:
         pass  # open once up front: bad input is reported before the ROS graph starts
@@ -150,6 +160,9 @@ def cmd_play(args) -> int:
         deadline = time.monotonic() + args.wait_for_subscriber
         while player.pub.get_subscription_count() == 0 and time.monotonic() < deadline:
             time.sleep(0.05)
+        # Our side sees the subscriber before its side has matched us: a volatile reader
+        # ignores what is sent before it matched, so the first frames could be lost.
+        time.sleep(args.delay)
         subs = player.pub.get_subscription_count()
         print(f'{prog}: publishing {source.count} frame(s) of {source.description} on '
               f'{source.topic} (rate x{args.rate:g}{", loop" if args.loop else ""}'
@@ -170,6 +183,7 @@ def cmd_play(args) -> int:
                     last_ns = bag_ns
             passes += 1
             if not args.loop:
+                player.flush()
                 break
             # next pass starts one frame period after this one ended: time keeps increasing
             player.offset_ns += (last_ns - first_ns) + (period_ns or SYNTHETIC_PERIOD_NS)
@@ -317,6 +331,10 @@ def register(sub) -> None:
     p.add_argument('--wait-for-subscriber', type=float, default=5.0, metavar='S',
                    help='wait up to S seconds for a subscriber before the first frame '
                    '(default 5; 0: start at once)')
+    p.add_argument('--delay', type=float, default=0.0, metavar='S',
+                   help='sleep S seconds after a subscriber appeared, before the first frame '
+                   '(as ros2 bag play --delay): lets discovery finish on the subscriber\'s side '
+                   'too, so that a reliable link loses not even the first frame (default 0)')
     add_qos_options(p, 5, 'publisher')
     p.set_defaults(func=cmd_play)
 

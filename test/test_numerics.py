@@ -418,7 +418,7 @@ def test_fallbacks_and_optimizer_failures_reach_node_diagnostics(ramp_points, mo
     assert values['cholesky_fallbacks'] == '0' and values['cholesky_fallbacks_window'] == '2'
     assert h.node.segmenter.hyperparameters == theta
     assert values['frames_failed'] == '0'
-    assert wait_for(lambda: len(h.ground) >= 2, 5.0)
+    assert wait_for(lambda: len(h.ground) >= 2, 20.0)
 
 
 @pytest.mark.parametrize('dtype, big', [(np.float32, 1e20), (np.float32, 3e38),

@@ -52,11 +52,11 @@ def qos_profile(reliability: str, depth: int):
     return QoSProfile(depth=depth, reliability=policy)
 
 
-def add_qos_options(parser, depth: int, what: str) -> None:
+def add_qos_options(parser, depth: int, what: str, reliable_note: str) -> None:
     """--qos-reliability / --qos-depth, named as in ``ros2 topic echo``."""
     parser.add_argument('--qos-reliability', choices=RELIABILITY_CHOICES, default='best_effort',
                         help=f'reliability of the {what} (default best_effort; reliable loses '
-                        'no message between reliable endpoints)')
+                        f'no message between reliable endpoints, {reliable_note})')
     parser.add_argument('--qos-depth', type=_positive_int, default=depth, metavar='N',
                         help=f'keep-last history depth of the {what} (default {depth})')
 
@@ -335,7 +335,7 @@ def register(sub) -> None:
                    help='sleep S seconds after a subscriber appeared, before the first frame '
                    '(as ros2 bag play --delay): lets discovery finish on the subscriber\'s side '
                    'too, so that a reliable link loses not even the first frame (default 0)')
-    add_qos_options(p, 5, 'publisher')
+    add_qos_options(p, 5, 'publisher', 'and still reaches best-effort subscribers')
     p.set_defaults(func=cmd_play)
 
     p = sub.add_parser('hz', help='print the rates of topics (like ros2 topic hz)',
@@ -350,5 +350,5 @@ def register(sub) -> None:
                    help='print every S seconds (default 1)')
     p.add_argument('--duration', type=float, default=None, metavar='S',
                    help='stop after S seconds')
-    add_qos_options(p, 10, 'subscriptions')
+    add_qos_options(p, 10, 'subscriptions', 'but hears nothing from a best-effort publisher')
     p.set_defaults(func=cmd_hz)

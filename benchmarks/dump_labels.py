@@ -1,6 +1,9 @@
 # SPDX-License-Identifier: Apache-2.0
 """Dump the ground masks of the shared real frames and the synthetic scenes, or compare two dumps.
 
+Each frame's dump holds its ground mask, its ground height and the theta it ended with, so a
+change that must not alter results is checked on all three (equal bit for bit, NaN equals NaN).
+
 A refactor must leave the labels unchanged. Run this against the old tree and the new one with
 the same parameters and compare (``PYTHONPATH`` picks the tree; the script itself only uses the
 public API ``GroundSegmenter(params).segment(points)``)::
@@ -49,7 +52,10 @@ def dump(out, fixed_theta):
     for name, points in frames():
         segmenter = GroundSegmenter(params)
         for rep in ('cold', 'warm'):
-            masks[f'{name}|{rep}'] = segmenter.segment(points).ground_mask
+            result = segmenter.segment(points)
+            masks[f'{name}|{rep}'] = result.ground_mask
+            masks[f'{name}|{rep}|height'] = result.ground_height
+            masks[f'{name}|{rep}|theta'] = np.array(result.hyperparameters, dtype=np.float64)
         print(f'{name}: {points.shape[0]} points, {int(masks[name + "|warm"].sum())} ground')
     np.savez_compressed(out, **masks)
 
@@ -60,10 +66,14 @@ def compare(old, new):
         sys.exit(f'different frames: {sorted(set(a.files) ^ set(b.files))}')
     total = 0
     for key in sorted(a.files):
-        diff = int(np.count_nonzero(a[key] != b[key]))
+        old_value, new_value = a[key], b[key]
+        same = (old_value == new_value) | (np.isnan(old_value) & np.isnan(new_value)
+                                           if old_value.dtype.kind == 'f' else False)
+        diff = int(np.count_nonzero(~same))
         total += diff
-        print(f'{key:55s} {a[key].size:8d} points {diff:6d} labels differ')
-    print(f'total differing labels: {total}')
+        what = key.rsplit('|', 1)[-1] if key.count('|') > 1 else 'labels'
+        print(f'{key:62s} {old_value.size:8d} values {diff:6d} {what} differ')
+    print(f'total differing values: {total}')
     return total
 
 

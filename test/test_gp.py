@@ -518,3 +518,29 @@ def test_backend_names():
     assert FrameGP(r, z, d, mask).backend == ('numba' if gp_compiled.AVAILABLE else 'numpy')
     with pytest.raises(ValueError, match='backend'):
         FrameGP(r, z, d, mask, backend='cuda')
+
+
+@pytest.mark.parametrize('with_anchor', [False, True])
+@pytest.mark.parametrize('seed', range(6))
+def test_compiled_padding_equals_the_numpy_reference(seed, with_anchor):
+    """FrameGP's (M, N) -> (S, n) padding: the compiled pass gives the reference's arrays bit
+    for bit (dtypes, shapes, padding slots), with rows empty, full and in between, and
+    segments with the anchor alone."""
+    from gp_ground_segmentation.core import gp as gp_module
+    if gp_module._pad_compiled is None:
+        pytest.skip('numba not installed')
+    rng = np.random.default_rng(seed)
+    m_count, n_count = 9, 6
+    r = rng.uniform(0.0, 40.0, (m_count, n_count))
+    z = rng.normal(0.0, 1.0, (m_count, n_count))
+    d = rng.uniform(0.1, 3.0, (m_count, n_count))
+    mask = rng.random((m_count, n_count)) < rng.uniform(0.1, 0.9)
+    mask[0] = False
+    mask[1] = True
+    noise_var = rng.uniform(0.0, 1.0, (m_count, n_count))
+    anchor_segments = rng.random(m_count) < 0.7
+    args = (r, z, d, mask, noise_var, with_anchor, anchor_segments,
+            rng.uniform(0.1, 2.0, m_count), -1.7, 0.01, float(rng.normal()))
+    for ours, reference in zip(gp_module._pad_compiled(*args), gp_module._pad_numpy(*args)):
+        assert ours.dtype == reference.dtype and ours.shape == reference.shape
+        np.testing.assert_array_equal(ours, reference)

@@ -320,3 +320,50 @@ def test_first_known_along_rows_is_column_0_of_the_filled_rows():
     known[2, 0] = True
     np.testing.assert_array_equal(_first_known_along_rows(values, known),
                                   _fill_along_rows(values, known)[:, 0])
+
+
+def test_compiled_fill_to_edges_equals_the_numpy_reference():
+    """The length factors at the bin edges of the GP's rows: the compiled pass gives the
+    reference's values (rows with a known first entry, a later one, none at all)."""
+    from gp_ground_segmentation.core import segmenter as module
+    if module._fill_rows_to_edges_compiled is None:
+        pytest.skip('numba not installed')
+    rng = np.random.default_rng(5)
+    values = rng.normal(size=(40, 7))
+    known = rng.random((40, 7)) < 0.25
+    known[0] = False
+    known[1] = [False] * 6 + [True]
+    known[2, 0] = True
+    rows = np.flatnonzero(rng.random(40) < 0.7)
+    rows[:3] = [0, 1, 2]
+    np.testing.assert_array_equal(module._fill_rows_to_edges_compiled(values, known, rows),
+                                  module._fill_rows_to_edges(values, known, rows))
+
+
+@pytest.mark.parametrize('dtype', [np.float32, np.float64])
+def test_compiled_label_pass_equals_the_numpy_reference(dtype):
+    """z_hat and the height test of every point: the compiled pass equals the reference bit
+    for bit, in either precision, with points right at the threshold (where one rounding
+    differently would flip the label)."""
+    from gp_ground_segmentation.core import segmenter as module
+    if module._label_compiled is None:
+        pytest.skip('numba not installed')
+    rng = np.random.default_rng(7)
+    m_count, row_length, n_points = 12, 9, 20000
+    mean = rng.normal(0.0, 1.0, m_count * row_length).astype(dtype)
+    threshold = rng.uniform(0.1, 0.5, m_count * row_length).astype(dtype)
+    segment = rng.integers(0, m_count, n_points).astype(np.int32)
+    point_bin = rng.integers(0, row_length - 1, n_points).astype(np.int32)
+    frac = rng.random(n_points).astype(dtype)
+    z_hat, _ = module._label_numpy(mean, threshold, segment, point_bin, frac,
+                                   np.zeros(n_points, dtype), row_length)
+    at_threshold, _ = module._label_numpy(threshold, threshold, segment, point_bin, frac,
+                                          np.zeros(n_points, dtype), row_length)
+    z = z_hat + at_threshold + rng.choice(np.array([-1, 0, 1], dtype), n_points) * (
+        np.finfo(dtype).eps * np.abs(z_hat + at_threshold))
+    ours = module._label_compiled(mean, threshold, segment, point_bin, frac, z, row_length)
+    reference = module._label_numpy(mean, threshold, segment, point_bin, frac, z, row_length)
+    assert ours[0].dtype == reference[0].dtype == dtype
+    np.testing.assert_array_equal(ours[0], reference[0])
+    np.testing.assert_array_equal(ours[1], reference[1])
+    assert 0.2 < reference[1].mean() < 0.9  # both labels occur near the threshold

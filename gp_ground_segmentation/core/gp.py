@@ -51,6 +51,7 @@ import numpy as np
 from scipy.optimize import minimize
 
 from . import gp_compiled
+from .compiled import kernel, run
 
 LOG_2PI = float(np.log(2.0 * np.pi))
 
@@ -83,12 +84,13 @@ def length_scale_factors(slope, density_rel, *, slope_floor, slope_ceiling,
     """d_i = log(1/g_i) / rho_i with the guards listed in the module docstring."""
     slope = np.asarray(slope, dtype=np.float64)
     raw = np.where(np.isnan(slope), 0.0, np.abs(slope))  # no slope = flat; +inf = steep
-    g = np.clip(raw, slope_floor, slope_ceiling)
+    # np.minimum(np.maximum()) is np.clip without its Python-level overhead (same values)
+    g = np.minimum(np.maximum(raw, slope_floor), slope_ceiling)
     rho = np.where(density_rel > 0, density_rel, 1.0)
     d = np.log(1.0 / g) / rho
     if not density_in_flat_branch:
         d = np.where(raw < slope_floor, np.log(1.0 / slope_floor), d)
-    return np.clip(d, d_min, d_max)
+    return np.minimum(np.maximum(d, d_min), d_max)
 
 
 def paciorek_kernel(r1, l1, r2, l2, sigma_f):
@@ -122,6 +124,104 @@ class GroundAnchor:
     length_factor: np.ndarray  # (M,) d of the point in each segment
 
 
+def _pad_numpy(r, z, d, mask, noise_var, has_anchor, anchor_segments, anchor_d,
+               anchor_height, anchor_var, mean):
+    """The numpy reference of FrameGP's padding: (M, N) candidate arrays -> the (S, n) batch.
+
+    Rows of ``mask`` with a training point (or the anchor) enter the batch; in each, the anchor
+    (when ``has_anchor`` and its segment has it) comes first, then the training candidates in
+    bin order, then padding slots (r 0, z 0, d 1, noise 0). Returns (segments (S,), valid,
+    bins (-1: the anchor), r, z - mean, d, noise_var (S, n), counts (S,)).
+    """
+    if has_anchor:  # the anchor becomes column 0 of the padded input
+        m_count = mask.shape[0]
+        r = np.concatenate([np.zeros((m_count, 1)), r], axis=1)
+        z = np.concatenate([np.full((m_count, 1), anchor_height), z], axis=1)
+        d = np.concatenate([anchor_d[:, None], d], axis=1)
+        mask = np.concatenate([anchor_segments[:, None], mask], axis=1)
+        noise_var = np.concatenate([np.full((m_count, 1), anchor_var), noise_var], axis=1)
+    counts = mask.sum(axis=1)
+    segments = np.flatnonzero(counts > 0)
+    n_max = int(counts.max()) if counts.size else 0
+    sub = mask[segments]
+    # stable order: training points of each segment first (the anchor first of all)
+    order = np.argsort(~sub, axis=1, kind='stable')[:, :n_max]
+    # (S, n) flat index into the padded (M, N[+1]) input of every slot: one gather per
+    # array instead of a row subset and take_along_axis (same values)
+    flat = segments[:, None] * mask.shape[1] + order
+    valid = mask.reshape(-1)[flat]
+    bins = order - 1 if has_anchor else order
+    return (segments, valid, bins, np.where(valid, r.reshape(-1)[flat], 0.0),
+            np.where(valid, z.reshape(-1)[flat] - mean, 0.0),
+            np.where(valid, d.reshape(-1)[flat], 1.0),
+            np.where(valid, noise_var.reshape(-1)[flat], 0.0), valid.sum(axis=1))
+
+
+def _pad_loop(r, z, d, mask, noise_var, has_anchor, anchor_segments, anchor_d, anchor_height,
+              anchor_var, mean):
+    """:func:`_pad_numpy` as one pass over the rows (compiled with numba): the same arrays,
+    without the concatenations, the sort and the ten gathers of the reference."""
+    m_count, n_count = mask.shape
+    row_counts = np.zeros(m_count, dtype=np.intp)
+    for m in range(m_count):
+        c = 1 if has_anchor and anchor_segments[m] else 0
+        for j in range(n_count):
+            if mask[m, j]:
+                c += 1
+        row_counts[m] = c
+    s_count = 0
+    n_max = 0
+    for m in range(m_count):
+        if row_counts[m] > 0:
+            s_count += 1
+            n_max = max(n_max, row_counts[m])
+    segments = np.empty(s_count, dtype=np.intp)
+    valid = np.zeros((s_count, n_max), dtype=np.bool_)
+    bins = np.empty((s_count, n_max), dtype=np.intp)
+    r_out = np.zeros((s_count, n_max))
+    z_out = np.zeros((s_count, n_max))
+    d_out = np.ones((s_count, n_max))
+    noise_out = np.zeros((s_count, n_max))
+    counts = np.empty(s_count, dtype=np.intp)
+    s = 0
+    for m in range(m_count):
+        if row_counts[m] == 0:
+            continue
+        segments[s] = m
+        counts[s] = row_counts[m]
+        k = 0
+        if has_anchor and anchor_segments[m]:
+            valid[s, 0] = True
+            bins[s, 0] = -1
+            z_out[s, 0] = anchor_height - mean
+            d_out[s, 0] = anchor_d[m]
+            noise_out[s, 0] = anchor_var
+            k = 1
+        for j in range(n_count):
+            if mask[m, j]:
+                valid[s, k] = True
+                bins[s, k] = j
+                r_out[s, k] = r[m, j]
+                z_out[s, k] = z[m, j] - mean
+                d_out[s, k] = d[m, j]
+                noise_out[s, k] = noise_var[m, j]
+                k += 1
+        if has_anchor and not anchor_segments[m] and k < n_max:
+            bins[s, k] = -1  # padding slots: the columns left, in order, as the stable sort
+            k += 1
+        for j in range(n_count):
+            if k >= n_max:
+                break
+            if not mask[m, j]:
+                bins[s, k] = j
+                k += 1
+        s += 1
+    return segments, valid, bins, r_out, z_out, d_out, noise_out, counts
+
+
+_pad_compiled = kernel(_pad_loop)
+
+
 class FrameGP:
     """Training data of one frame, padded to (S, n) over the segments that have training points.
 
@@ -141,44 +241,36 @@ class FrameGP:
         ``backend``: 'numba' (compiled factorisation), 'numpy', or 'auto' (numba if it imports).
         """
         mask = np.asarray(mask, dtype=bool)
-        noise_var = np.zeros(mask.shape) if noise_var is None else noise_var
         self.anchor = anchor
-        if anchor is not None:  # the anchor becomes column 0 of the padded input
-            m_count = mask.shape[0]
-            r = np.concatenate([np.zeros((m_count, 1)), r], axis=1)
-            z = np.concatenate([np.full((m_count, 1), anchor.height_m), z], axis=1)
-            d = np.concatenate([np.asarray(anchor.length_factor, float)[:, None], d], axis=1)
-            mask = np.concatenate([np.asarray(anchor.segments, bool)[:, None], mask], axis=1)
-            noise_var = np.concatenate([np.full((m_count, 1), anchor.noise_var), noise_var],
-                                       axis=1)
-        self.shape = (mask.shape[0], mask.shape[1] - (anchor is not None))  # (M, N) of the grid
-        counts = mask.sum(axis=1)
-        self.segments = np.flatnonzero(counts > 0)  # rows of (M, N) that enter the batch
-        n_max = int(counts.max()) if counts.size else 0
-        self.n_max = n_max
-        sub = mask[self.segments]
-        # stable order: training points of each segment first (the anchor first of all)
-        order = np.argsort(~sub, axis=1, kind='stable')[:, :n_max]
-        # (S, n) flat index into the padded (M, N[+1]) input of every slot: one gather per
-        # array instead of a row subset and take_along_axis (same values)
-        flat = self.segments[:, None] * mask.shape[1] + order
-        self.valid = mask.reshape(-1)[flat]
-        # (S, n) grid bin of every padded slot; -1 for the anchor
-        self.bins = order - 1 if anchor is not None else order
+        self.shape = mask.shape  # (M, N) of the grid
+        self.backend = resolve_backend(backend)
+        m_count = mask.shape[0]
+        has_anchor = anchor is not None
+        anchor_segments = (np.asarray(anchor.segments, dtype=bool) if has_anchor
+                           else np.zeros(m_count, dtype=bool))
+        if mean is None:  # the median over all training points, the anchor once per segment
+            seen = np.asarray(z)[mask]  # in z's precision, as the heights it is the median of
+            if has_anchor:
+                anchors = np.full(np.count_nonzero(anchor_segments), float(anchor.height_m))
+                seen = np.concatenate([anchors, seen])
+            mean = float(np.median(seen)) if seen.size else 0.0
+        self.mean = float(mean)
+        as_float = (lambda a: np.ascontiguousarray(a, dtype=np.float64))
+        args = (as_float(r), as_float(z), as_float(d), np.ascontiguousarray(mask),
+                as_float(np.zeros(mask.shape) if noise_var is None else noise_var),
+                has_anchor, anchor_segments,
+                as_float(anchor.length_factor if has_anchor else np.ones(m_count)),
+                float(anchor.height_m) if has_anchor else 0.0,
+                float(anchor.noise_var) if has_anchor else 0.0, self.mean)
+        # segments: rows of (M, N) that enter the batch; per (S, n) slot: valid, grid bin (-1
+        # for the anchor), r, z - mean, d, noise_var; counts: training points of each row
+        (self.segments, self.valid, self.bins, self.r, self.z, self.d, self.noise_var,
+         self.counts) = run(self.backend == 'numba', _pad_compiled, _pad_numpy, *args)
+        self.n_max = self.valid.shape[1]
         self.is_anchor = self.valid & (self.bins < 0)
-        take = (lambda a: np.asarray(a, dtype=np.float64).reshape(-1)[flat])
-        self.mean = float(np.median(np.asarray(z)[mask])) if mean is None and mask.any() else (
-            0.0 if mean is None else float(mean))
-        valid = self.valid
-        self.r = np.where(valid, take(r), 0.0)
-        self.z = np.where(valid, take(z) - self.mean, 0.0)
-        self.d = np.where(valid, take(d), 1.0)
-        self.noise_var = np.where(valid, take(noise_var), 0.0)
-        self.counts = valid.sum(axis=1)  # (S,) training points of each row: its first slots
         self.num_points = int(self.counts.sum())
         self._geometry = None  # (q, prefactor) (S, n, n) of the numpy path, made on first use
         self._grid_slot_index = None  # to_grid's index, made on first use (shared by copies)
-        self.backend = resolve_backend(backend)
         self.compiled_error = None  # why the numba kernel failed, if it did (then numpy)
         self.cholesky_fallbacks = 0  # jittered retries of this object and those it came from
         self.factorisations = 0  # uncached solves of this object (the unit of fitting cost)

@@ -198,8 +198,8 @@ def _ground_at_bin_edges(model: _GroundModel, edges: np.ndarray, need_std: bool)
     d_star = k_star = None
     if model.solution is not None:
         rows = model.gp.segments
-        d_fill = _fill_along_rows(model.length_factor, model.training)
-        d_star = np.concatenate([d_fill, d_fill[:, -1:]], axis=1)[rows]
+        d_star = compiled.run(model.gp.backend == 'numba', _fill_rows_to_edges_compiled,
+                              _fill_rows_to_edges, model.length_factor, model.training, rows)
         mean_b, std_b, k_star = model.gp.predict(model.solution, edges[rows], d_star,
                                                  with_std=need_std, return_kernel=True)
         mean[rows] = mean_b
@@ -238,28 +238,72 @@ def _ground_surface(model: _GroundModel, grid: RadialGrid, edges, mean, std, poi
                          compute_std if std is None else None, compute_offset, pose)
 
 
-def _point_edge_indices(grid: RadialGrid) -> tuple:
-    """Flat (M, N + 1) indices of every point's inner and outer bin edge, for
-    :func:`_interpolate_at_points` (made once a frame: the mean and the threshold share them)."""
-    inner = grid.point_segment * np.int32(grid.num_bins + 1) + grid.point_bin
-    return inner, inner + 1
+def _inner_edge_index(point_segment, point_bin, row_length) -> np.ndarray:
+    """Flat (M, N + 1) index of every point's inner bin edge (the outer one is the next)."""
+    return point_segment * np.int32(row_length) + point_bin
 
 
-def _interpolate_at_points(values: np.ndarray, grid: RadialGrid, edges: tuple) -> np.ndarray:
+def _interpolate_at_points(values: np.ndarray, grid: RadialGrid) -> np.ndarray:
     """(M, N + 1) values at bin edges -> every point, linearly along r within its bin.
 
-    ``edges``: :func:`_point_edge_indices` of ``grid``. Flat gathers in the points' precision:
-    at 2 M points every float64 temporary is 16 MB.
+    Flat gathers in the points' precision: at 2 M points every float64 temporary is 16 MB.
     """
     frac = grid.point_bin_fraction
-    flat = values.ravel().astype(frac.dtype)
-    inner, outer = edges
+    inner = _inner_edge_index(grid.point_segment, grid.point_bin, grid.num_bins + 1)
+    return _interpolate_flat(values.ravel().astype(frac.dtype), inner, frac)
+
+
+def _interpolate_flat(flat: np.ndarray, inner: np.ndarray, frac: np.ndarray) -> np.ndarray:
+    """``flat[inner]`` moved ``frac`` of the way to ``flat[inner + 1]``, in ``flat``'s dtype."""
     out = flat[inner]
-    step = flat[outer]
+    step = flat[inner + 1]
     step -= out
     step *= frac
     out += step
     return out
+
+
+def _label_points(mean: np.ndarray, threshold, grid: RadialGrid, z: np.ndarray,
+                  use_compiled: bool):
+    """(z_hat, ground) of every point: the (M, N + 1) ``mean`` and ``threshold`` (or a scalar
+    threshold) at the bin edges interpolated to the points (:func:`_interpolate_at_points`)
+    and the height test z - z_hat <= threshold, in the points' precision."""
+    if np.ndim(threshold) == 0:
+        z_hat = _interpolate_at_points(mean, grid)
+        return z_hat, z - z_hat <= threshold
+    frac = grid.point_bin_fraction
+    args = (mean.ravel().astype(frac.dtype), threshold.ravel().astype(frac.dtype),
+            grid.point_segment, grid.point_bin, frac, z, grid.num_bins + 1)
+    return compiled.run(use_compiled, _label_compiled, _label_numpy, *args)
+
+
+def _label_numpy(mean, threshold, point_segment, point_bin, frac, z, row_length):
+    """The numpy reference of :func:`_label_loop`: flat (M * (N + 1)) ``mean`` and
+    ``threshold`` at the bin edges, each point's segment, bin and position in the bin ->
+    (z_hat, ground)."""
+    inner = _inner_edge_index(point_segment, point_bin, row_length)
+    z_hat = _interpolate_flat(mean, inner, frac)
+    return z_hat, z - z_hat <= _interpolate_flat(threshold, inner, frac)
+
+
+def _label_loop(mean, threshold, point_segment, point_bin, frac, z, row_length):
+    """:func:`_label_numpy` in one pass over the points (compiled with numba): the same
+    operations in the same precision for each point, without the reference's six gathers and
+    per-point temporaries."""
+    z_hat = np.empty(z.size, dtype=frac.dtype)
+    ground = np.empty(z.size, dtype=np.bool_)
+    for i in range(z.size):
+        inner = point_segment[i] * row_length + point_bin[i]
+        f = frac[i]
+        low = mean[inner]
+        height = low + (mean[inner + 1] - low) * f
+        low = threshold[inner]
+        z_hat[i] = height
+        ground[i] = z[i] - height <= low + (threshold[inner + 1] - low) * f
+    return z_hat, ground
+
+
+_label_compiled = compiled.kernel(_label_loop)
 
 
 def _fill_along_rows(values: np.ndarray, known: np.ndarray) -> np.ndarray:
@@ -272,6 +316,37 @@ def _fill_along_rows(values: np.ndarray, known: np.ndarray) -> np.ndarray:
     pick = np.where(left >= 0, left, right)
     pick = np.clip(pick, 0, n - 1)
     return np.take_along_axis(values, pick, axis=1)
+
+
+def _fill_rows_to_edges(values: np.ndarray, known: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """(len(rows), N + 1): ``_fill_along_rows(values, known)`` of ``rows``, its last column
+    repeated for the outer edge; the numpy reference of :func:`_fill_rows_to_edges_loop`."""
+    filled = _fill_along_rows(values, known)
+    return np.concatenate([filled, filled[:, -1:]], axis=1)[rows]
+
+
+def _fill_rows_to_edges_loop(values, known, rows):
+    """:func:`_fill_rows_to_edges` in one pass (compiled with numba): only the rows asked for,
+    without the reference's two accumulations, three where and the gather (the same values).
+    """
+    n = values.shape[1]
+    out = np.empty((rows.size, n + 1), dtype=values.dtype)
+    for s in range(rows.size):
+        m = rows[s]
+        pick = n - 1  # a row without a known entry takes its last one
+        for j in range(n):
+            if known[m, j]:
+                pick = j  # the first known entry fills the entries before it
+                break
+        for j in range(n):
+            if known[m, j]:
+                pick = j
+            out[s, j] = values[m, pick]
+        out[s, n] = out[s, n - 1]
+    return out
+
+
+_fill_rows_to_edges_compiled = compiled.kernel(_fill_rows_to_edges_loop)
 
 
 def _first_known_along_rows(values: np.ndarray, known: np.ndarray) -> np.ndarray:
@@ -315,7 +390,8 @@ class GroundSegmenter:
     def warm_up(self) -> None:
         """Compile (or load from numba's cache) the GP step now, not inside the first frame, and
         have the stages with a bit-identical numpy twin (grid pass, line growing, plateau state
-        machine, structure look-ups, surface offsets) compiled in the background
+        machine, GP batch padding, length factors at the bin edges, label pass, structure
+        look-ups, surface offsets) compiled in the background
         (core/compiled.py; up to _BACKGROUND_WAIT_S is waited for them, enough to load them from
         the cache). See gp_compiled.py for where the cache lives.
 
@@ -331,6 +407,7 @@ class GroundSegmenter:
             for dtype in (np.float32, np.float64):  # both input precisions of these passes
                 xyz = np.ones((3, 2), dtype=dtype)
                 grid = build_grid(*xyz, 2, 2)
+                _label_points(np.zeros((2, 3)), np.zeros((2, 3)), grid, xyz[2], True)
                 # a ground point with a column point right above it reaches the compiled part
                 vertical_structure_mask(xyz[0], xyz[1] * 0, np.array([0.0, 0.5], dtype),
                                         np.zeros(2, dtype), np.array([True, False]),
@@ -344,6 +421,11 @@ class GroundSegmenter:
             additions.elevated_plateaus(grid.candidate_r, grid.candidate_z, lines.slope_before,
                                         step_up_m=0.3, max_slope=1.0, max_gap_m=1.0)
             ground_offsets(np.zeros(1), np.zeros(1, np.int32), np.zeros(1, np.int32), 1, 1, 0.1)
+            # the GP batch's padding and the length factors at the bin edges
+            gp = FrameGP(grid.candidate_r, grid.candidate_z, np.ones((2, 2)), grid.has_candidate,
+                         backend='numba')
+            compiled.run(True, _fill_rows_to_edges_compiled, _fill_rows_to_edges,
+                         np.ones((2, 2)), grid.has_candidate, gp.segments)
             # These stages compile in the background (core/compiled.py); loading them from
             # numba's cache takes ~0.1 s, so wait that long, not the ~4 s of a first compile.
             compiled.wait(_BACKGROUND_WAIT_S)
@@ -586,14 +668,9 @@ class GroundSegmenter:
         timings['predict'] = (time.perf_counter() - t) * 1e3
 
         t = time.perf_counter()
-        point_edges = _point_edge_indices(grid)
-        z_hat = _interpolate_at_points(mean_full, grid, point_edges)
         edge_threshold = self._threshold_at_bin_edges(edges, mean_full, std_full)
-        if np.ndim(edge_threshold):
-            threshold = _interpolate_at_points(edge_threshold, grid, point_edges)
-        else:
-            threshold = edge_threshold
-        ground_v = z - z_hat <= threshold
+        z_hat, ground_v = _label_points(mean_full, edge_threshold, grid, z,
+                                        self._backend == 'numba')
         timings['label'] = (time.perf_counter() - t) * 1e3
 
         feet = None
@@ -613,6 +690,9 @@ class GroundSegmenter:
 
         extra = None
         if details:
+            threshold = edge_threshold
+            if np.ndim(threshold):
+                threshold = _interpolate_at_points(threshold, grid)
             threshold = np.broadcast_to(np.asarray(threshold, dtype=np.float64), z.shape)
             extra = SegmentationDetails(
                 np.flatnonzero(valid), grid, lines, model.training, model.outliers,

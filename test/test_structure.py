@@ -182,3 +182,29 @@ def test_compiled_pass_equals_the_numpy_reference_on_a_real_scan(dtype):
     reference = vertical_structure_mask(x, y, z, gz, cand, **KW, compiled=False)
     assert np.count_nonzero(reference) > 1000
     assert np.array_equal(compiled, reference)
+
+
+@pytest.mark.parametrize('dtype', [np.float32, np.float64])
+def test_compiled_selection_equals_the_numpy_reference(dtype):
+    """Column points and candidates within the range limit: the compiled pass returns the
+    reference's indices and ranges, with heights and ranges exactly at the limits."""
+    from gp_ground_segmentation.core import structure
+    if not COMPILED:
+        pytest.skip('numba not installed')
+    rng = np.random.default_rng(11)
+    n_points = 5000
+    limit, rise, top = dtype(115.0), dtype(0.2), dtype(0.7)
+    r = rng.uniform(0.0, 130.0, n_points).astype(dtype)
+    r[:20] = limit
+    ground_z = rng.normal(0.0, 0.3, n_points).astype(dtype)
+    z = ground_z + rng.uniform(-0.2, 1.0, n_points).astype(dtype)
+    z[20:40] = ground_z[20:40] + rise
+    z[40:60] = ground_z[40:60] + top
+    candidate = rng.random(n_points) < 0.5
+    args = (z, ground_z, candidate, r, rise, top, limit)
+    ours = structure._select_compiled(*args)
+    reference = structure._select_numpy(*args)
+    for a, b in zip(ours, reference):
+        assert a.dtype == b.dtype
+        np.testing.assert_array_equal(a, b)
+    assert 0 < reference[0].size < reference[2].size < n_points

@@ -21,10 +21,12 @@ predicted ground count as the column: tree crowns, car roofs and signs overhangi
 ground are higher than the structures whose feet are the problem, and must not erase the
 ground under them.
 
-The cells are computed with numpy (vectorised). The table of the highest column point per cell
-(dense, azimuth x radial) and the nine look-ups per candidate are one compiled (numba, nogil)
-pass without temporaries; the numpy reference (``np.maximum.at`` and nine gathers) gives the
-same mask and is used without numba. About 2-4 ms on a 124k-point KITTI scan.
+The cells are computed with numpy (vectorised: its arctan2 and log are not the compiled
+ones, bit for bit). The selection of the column points and candidates is one compiled pass,
+and so are the table of the highest column point per cell (azimuth x radial; compiled, only
+the rings each azimuth row uses) and the nine look-ups per candidate; the numpy references
+(masks and gathers; a dense table, ``np.maximum.at`` and nine gathers) give the same points
+and mask and are used without numba. About 2 ms on a 124k-point KITTI scan.
 Curbs (0.1-0.2 m faces) stay ground when ``rise_m`` is above curb height; ramps and hills rise
 less than ``rise_m`` over a few cm; sparse far ground has no point above it.
 """
@@ -87,14 +89,16 @@ def vertical_structure_mask(x: np.ndarray, y: np.ndarray, z: np.ndarray,
     Returns a (P,) bool mask, a subset of ``candidate``.
     """
     out = np.zeros(candidate.shape, dtype=bool)
-    height = z - ground_z
     cell_rad = np.radians(cell_deg)
     limit = max(_MAX_CELL_M, cell_m) / cell_rad
     if r is None:
         r = np.hypot(x, y)
-    column, r_col = _within(np.flatnonzero((height > rise_m) & (height <= max_height_m)), r,
-                            limit)
-    cand, r_cand = _within(np.flatnonzero(candidate), r, limit)
+    # the limits in the precision of what they are compared with, as numpy compares an array
+    # with a Python float
+    height_type = np.result_type(z, ground_z).type
+    column, r_col, cand, r_cand = run(
+        compiled, _select_compiled, _select_numpy, z, ground_z, candidate, r,
+        height_type(rise_m), height_type(max_height_m), r.dtype.type(limit))
     if cand.size == 0 or column.size == 0:
         return out
     az_col, ring_col, n_az = _polar_cells(x[column], y[column], r_col, cell_m, cell_rad)
@@ -105,6 +109,49 @@ def vertical_structure_mask(x: np.ndarray, y: np.ndarray, z: np.ndarray,
             z.dtype.type(step_m))
     out[cand] = run(compiled, _structure_hits_compiled, _structure_hits_numpy, *args)
     return out
+
+
+def _select_numpy(z, ground_z, candidate, r, rise_m, max_height_m, limit):
+    """(column, its r, candidates, their r): the indices of the points within ``limit`` of
+    the sensor that are column points (between ``rise_m`` and ``max_height_m`` above the
+    predicted ground) and those that are ``candidate``s."""
+    height = z - ground_z
+    column, r_col = _within(np.flatnonzero((height > rise_m) & (height <= max_height_m)), r,
+                            limit)
+    cand, r_cand = _within(np.flatnonzero(candidate), r, limit)
+    return column, r_col, cand, r_cand
+
+
+def _select_loop(z, ground_z, candidate, r, rise_m, max_height_m, limit):
+    """:func:`_select_numpy` in one pass over the points (compiled with numba): the same
+    comparisons in the same precision, without the reference's masks and gathers."""
+    n_points = z.size
+    column = np.empty(n_points, dtype=np.intp)
+    cand = np.empty(n_points, dtype=np.intp)
+    n_column = 0
+    n_cand = 0
+    for i in range(n_points):
+        if not r[i] <= limit:
+            continue
+        height = z[i] - ground_z[i]
+        if height > rise_m and height <= max_height_m:
+            column[n_column] = i
+            n_column += 1
+        if candidate[i]:
+            cand[n_cand] = i
+            n_cand += 1
+    column = column[:n_column]
+    cand = cand[:n_cand]
+    r_col = np.empty(n_column, dtype=r.dtype)
+    for k in range(n_column):
+        r_col[k] = r[column[k]]
+    r_cand = np.empty(n_cand, dtype=r.dtype)
+    for k in range(n_cand):
+        r_cand[k] = r[cand[k]]
+    return column, r_col, cand, r_cand
+
+
+_select_compiled = kernel(_select_loop)
 
 
 def _structure_hits_numpy(az_col, ring_col, z_col, az_cand, ring_cand, z_cand, n_az, width,

@@ -307,3 +307,23 @@ def test_compiled_plateaus_equal_the_numpy_reference_on_real_candidates(source):
             end_on_drop=p.plateau_ends_on_drop)
         assert np.count_nonzero(reference) > 10
         assert np.array_equal(compiled, reference)
+
+
+@pytest.mark.parametrize('seed', range(30))
+def test_compiled_cross_segment_rise_equals_the_numpy_reference(seed):
+    """The compiled rise equals the np.interp reference bit for bit: rows of their own r
+    ranges (clipped look-ups at both ends), a single segment, NaN heights."""
+    from gp_ground_segmentation.core import additions
+    if additions._rise_compiled is None:
+        pytest.skip('numba not installed')
+    rng = np.random.default_rng(seed)
+    m_count, n_bins = int(rng.integers(1, 40)), int(rng.integers(1, 30))
+    edges = (rng.uniform(0.0, 5.0, (m_count, 1))
+             + np.arange(n_bins + 1) * rng.uniform(1e-3, 3.0, (m_count, 1)))
+    mean = rng.normal(0.0, 1.0, (m_count, n_bins + 1)) * rng.uniform(0.0, 3.0)
+    if seed % 3 == 0:
+        mean[rng.random(mean.shape) < 0.1] = np.nan
+    reference = additions.cross_segment_rise(edges, mean, 0.3, compiled=False)
+    additions._rise_compiled(edges, mean, 0.3, float(np.nanmax(edges)) + 1.0)  # compiled now
+    ours = additions.cross_segment_rise(edges, mean, 0.3)
+    np.testing.assert_array_equal(ours, reference)

@@ -201,7 +201,8 @@ def outlier_candidates(loo_residual: np.ndarray, *, above_m: float, below_m: flo
         return above | (loo_residual < -below_m)
 
 
-def cross_segment_rise(edges: np.ndarray, mean: np.ndarray, max_slope: float) -> np.ndarray:
+def cross_segment_rise(edges: np.ndarray, mean: np.ndarray, max_slope: float,
+                       compiled: bool = True) -> np.ndarray:
     """(M, N + 1) how much the predicted ground rises across one segment at each bin edge (m).
 
     The GP models z(r) per segment, and a bin's candidate is its lowest point: where the ground
@@ -218,10 +219,16 @@ def cross_segment_rise(edges: np.ndarray, mean: np.ndarray, max_slope: float) ->
     threshold more.
 
     ``edges``: (M, N + 1) r of every segment's bin edges (increasing along each row);
-    ``mean``: z_hat there.
+    ``mean``: z_hat there. ``compiled``: one numba pass when numba imports (else the numpy
+    reference); both give the same values.
     """
-    m_count = edges.shape[0]
     span = float(np.nanmax(edges)) + 1.0
+    return run(compiled, _rise_compiled, _rise_numpy, edges, mean, float(max_slope), span)
+
+
+def _rise_numpy(edges, mean, max_slope, span):
+    """The numpy reference of :func:`cross_segment_rise` (``span``: more than any r)."""
+    m_count = edges.shape[0]
     # one sorted 1-D table of all rows (row offset by a span larger than any r): np.interp
     # then looks up every segment's edges in its neighbour's row at once
     offset = np.arange(m_count)[:, None] * span
@@ -238,6 +245,68 @@ def cross_segment_rise(edges: np.ndarray, mean: np.ndarray, max_slope: float) ->
     rise = np.where(ahead * behind > 0, np.minimum(np.abs(ahead), np.abs(behind)), 0.0)
     cap = max_slope * (2.0 * np.pi / m_count) * edges
     return np.minimum(rise, cap)
+
+
+def _rise_loop(edges, mean, max_slope, span):
+    """:func:`_rise_numpy` in one pass (compiled with numba): each edge looked up in its
+    neighbours' rows with np.interp's own arithmetic (the slope of the interval, then
+    slope * (x - x_j) + z_j, the other end if that is NaN, z_j where x = x_j), the same
+    query and table values, so the same numbers without the reference's (M, N + 1)
+    temporaries. A row's edges increase, so the interval of the next edge is found by
+    walking on from the last one."""
+    m_count, n_edges = edges.shape
+    rise = np.empty((m_count, n_edges))
+    neighbour = np.empty((2, n_edges))  # ground of the segment ahead and behind at each edge
+    factor = max_slope * (2.0 * np.pi / m_count)
+    for m in range(m_count):
+        for side in range(2):
+            n = m + 1 if side == 0 else m - 1
+            if n == m_count:
+                n = 0
+            elif n < 0:
+                n = m_count - 1
+            offset = n * span
+            j = 0  # the last table entry of row n at or before x
+            for k in range(n_edges):
+                x = edges[m, k]  # np.clip(edges, first, last) + offset, then np.interp
+                if x < edges[n, 0]:
+                    x = edges[n, 0]
+                if x > edges[n, n_edges - 1]:
+                    x = edges[n, n_edges - 1]
+                x = x + offset
+                if np.isnan(x):
+                    neighbour[side, k] = x
+                    continue
+                if edges[n, j] + offset > x:
+                    j = 0  # edges not increasing after all: search the row from its start
+                while j + 1 < n_edges and edges[n, j + 1] + offset <= x:
+                    j += 1
+                x_j = edges[n, j] + offset
+                if j == n_edges - 1 or x_j == x:
+                    value = mean[n, j]
+                else:
+                    x_next = edges[n, j + 1] + offset
+                    slope = (mean[n, j + 1] - mean[n, j]) / (x_next - x_j)
+                    value = slope * (x - x_j) + mean[n, j]
+                    if np.isnan(value):
+                        value = slope * (x - x_next) + mean[n, j + 1]
+                        if np.isnan(value) and mean[n, j] == mean[n, j + 1]:
+                            value = mean[n, j]
+                neighbour[side, k] = value
+        for k in range(n_edges):
+            step_ahead = neighbour[0, k] - mean[m, k]
+            step_behind = mean[m, k] - neighbour[1, k]
+            value = 0.0
+            if step_ahead * step_behind > 0:
+                value = abs(step_ahead)  # np.minimum: NaN if either is NaN
+                if not (np.isnan(value) or value <= abs(step_behind)):
+                    value = abs(step_behind)
+            cap = factor * edges[m, k]
+            rise[m, k] = value if np.isnan(value) or value <= cap else cap
+    return rise
+
+
+_rise_compiled = kernel(_rise_loop)
 
 
 def one_point_line_slopes(slope: np.ndarray, cand_r: np.ndarray,

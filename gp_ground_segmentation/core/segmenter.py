@@ -390,8 +390,8 @@ class GroundSegmenter:
     def warm_up(self) -> None:
         """Compile (or load from numba's cache) the GP step now, not inside the first frame, and
         have the stages with a bit-identical numpy twin (grid pass, line growing, plateau state
-        machine, GP batch padding, length factors at the bin edges, label pass, structure
-        look-ups, surface offsets) compiled in the background
+        machine, GP batch padding, length factors at the bin edges, cross-segment rise, label
+        pass, structure selection and look-ups, surface offsets) compiled in the background
         (core/compiled.py; up to _BACKGROUND_WAIT_S is waited for them, enough to load them from
         the cache). See gp_compiled.py for where the cache lives.
 
@@ -421,7 +421,8 @@ class GroundSegmenter:
             additions.elevated_plateaus(grid.candidate_r, grid.candidate_z, lines.slope_before,
                                         step_up_m=0.3, max_slope=1.0, max_gap_m=1.0)
             ground_offsets(np.zeros(1), np.zeros(1, np.int32), np.zeros(1, np.int32), 1, 1, 0.1)
-            # the GP batch's padding and the length factors at the bin edges
+            # the GP batch's padding, the length factors at the bin edges, the threshold's rise
+            additions.cross_segment_rise(np.ones((2, 3)), np.ones((2, 3)), 1.0)
             gp = FrameGP(grid.candidate_r, grid.candidate_z, np.ones((2, 2)), grid.has_candidate,
                          backend='numba')
             compiled.run(True, _fill_rows_to_edges_compiled, _fill_rows_to_edges,

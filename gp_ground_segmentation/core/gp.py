@@ -299,10 +299,10 @@ class FrameGP:
         if self.backend == 'numpy':
             self._pair_geometry()  # made once here, shared by the copy
         other = copy.copy(self)
-        flat = self.segments[:, None] * self.shape[1] + np.maximum(self.bins, 0)
-        slots = np.asarray(noise_var, dtype=np.float64).reshape(-1)[flat]
         anchor_var = self.anchor.noise_var if self.anchor is not None else 0.0
-        other.noise_var = np.where(self.valid, np.where(self.is_anchor, anchor_var, slots), 0.0)
+        keep, grid_index = self._grid_slots()  # the grid candidates' slots; padding gets 0
+        other.noise_var = np.where(self.is_anchor, anchor_var, 0.0)
+        other.noise_var[keep] = np.asarray(noise_var, dtype=np.float64).reshape(-1)[grid_index]
         other._cache = None  # cholesky_fallbacks carries on: it counts the whole chain
         other.factorisations = 0
         return other

@@ -562,7 +562,8 @@ class GroundSegmenter:
         mean = None
         if anchor is not None and p.prior_mean_at_anchor and training.any():
             seen = grid.candidate_z[training]
-            mean = float(np.clip(anchor.height_m, seen.min(), seen.max()))
+            # np.clip of one number, without np.clip's array set-up (same value)
+            mean = float(min(max(anchor.height_m, float(seen.min())), float(seen.max())))
         gp = FrameGP(grid.candidate_r, grid.candidate_z, d, training, anchor=anchor,
                      backend=self._backend, mean=mean)
         gp, sol, theta, outliers = self._fit_robustly(gp, stats)

@@ -367,3 +367,28 @@ def test_compiled_label_pass_equals_the_numpy_reference(dtype):
     np.testing.assert_array_equal(ours[0], reference[0])
     np.testing.assert_array_equal(ours[1], reference[1])
     assert 0.2 < reference[1].mean() < 0.9  # both labels occur near the threshold
+
+
+@pytest.mark.parametrize('dtype', [np.float32, np.float64])
+@pytest.mark.parametrize('columns', [3, 4])
+def test_compiled_valid_columns_equal_the_numpy_reference(dtype, columns):
+    """The valid mask and the valid points' x, y, z: the compiled pass gives the reference's
+    arrays (NaN, inf, the (0, 0, 0) no-return, points with one or two zero coordinates), on a
+    contiguous (N, 3) array and on the (N, 3) view of an (N, 4) cloud."""
+    from gp_ground_segmentation.core import segmenter as module
+    if module._valid_columns_compiled is None:
+        pytest.skip('numba not installed')
+    rng = np.random.default_rng(9)
+    points = rng.normal(0.0, 10.0, (3000, columns)).astype(dtype)
+    points[:30, :3] = 0.0
+    points[30:60, :2] = 0.0
+    points[60:90, rng.integers(0, 3, 30)] = np.nan
+    points[90:120, 2] = np.inf
+    rng.shuffle(points)
+    xyz = points[:, :3]
+    ours = module._valid_columns_compiled(xyz)
+    reference = module._valid_columns(xyz)
+    for a, b in zip(ours, reference):
+        assert a.dtype == b.dtype and a.flags.c_contiguous
+        np.testing.assert_array_equal(a, b)
+    assert 3000 - 120 < np.count_nonzero(reference[0]) < 3000 - 60

@@ -174,6 +174,40 @@ def valid_points_mask(xyz: np.ndarray) -> np.ndarray:
     return finite & ~((x == 0) & (y == 0) & (z == 0))
 
 
+def _valid_columns(xyz: np.ndarray):
+    """(valid mask (N,), x, y, z of the valid points as contiguous arrays) of (N, 3) ``xyz``:
+    the numpy reference of :func:`_valid_columns_loop`."""
+    valid = valid_points_mask(xyz)
+    valid_xyz = xyz if valid.all() else xyz[valid]
+    return (valid,) + tuple(np.ascontiguousarray(valid_xyz[:, i]) for i in range(3))
+
+
+def _valid_columns_loop(xyz):
+    """:func:`_valid_columns` in two passes over the points (compiled with numba): the same
+    tests (finite, not (0, 0, 0)) and the same copies, without the reference's six masks."""
+    n_points = xyz.shape[0]
+    valid = np.empty(n_points, dtype=np.bool_)
+    n_valid = 0
+    for i in range(n_points):
+        px, py, pz = xyz[i, 0], xyz[i, 1], xyz[i, 2]
+        ok = (np.isfinite(px) and np.isfinite(py) and np.isfinite(pz)
+              and not (px == 0 and py == 0 and pz == 0))
+        valid[i] = ok
+        n_valid += ok
+    x = np.empty(n_valid, dtype=xyz.dtype)
+    y = np.empty(n_valid, dtype=xyz.dtype)
+    z = np.empty(n_valid, dtype=xyz.dtype)
+    k = 0
+    for i in range(n_points):
+        if valid[i]:
+            x[k], y[k], z[k] = xyz[i, 0], xyz[i, 1], xyz[i, 2]
+            k += 1
+    return valid, x, y, z
+
+
+_valid_columns_compiled = compiled.kernel(_valid_columns_loop)
+
+
 class _GroundModel(NamedTuple):
     """What the ``gp_fit`` stage hands to ``predict``."""
 
@@ -389,11 +423,11 @@ class GroundSegmenter:
 
     def warm_up(self) -> None:
         """Compile (or load from numba's cache) the GP step now, not inside the first frame, and
-        have the stages with a bit-identical numpy twin (grid pass, line growing, plateau state
-        machine, GP batch padding, length factors at the bin edges, cross-segment rise, label
-        pass, structure selection and look-ups, surface offsets) compiled in the background
-        (core/compiled.py; up to _BACKGROUND_WAIT_S is waited for them, enough to load them from
-        the cache). See gp_compiled.py for where the cache lives.
+        have the stages with a bit-identical numpy twin (valid points, grid pass, line growing,
+        plateau state machine, GP batch padding, length factors at the bin edges,
+        cross-segment rise, label pass, structure selection and look-ups, surface offsets)
+        compiled in the background (core/compiled.py; up to _BACKGROUND_WAIT_S is waited for
+        them, enough to load them from the cache). See gp_compiled.py for where the cache lives.
 
         On failure this segmenter switches to numpy and the error is raised for the caller to
         report; segmenting still works.
@@ -406,6 +440,8 @@ class GroundSegmenter:
                 raise
             for dtype in (np.float32, np.float64):  # both input precisions of these passes
                 xyz = np.ones((3, 2), dtype=dtype)
+                for cloud in (xyz.T.copy(), np.ones((2, 4), dtype)[:, :3]):  # (N, 3), (N, 4)
+                    compiled.run(True, _valid_columns_compiled, _valid_columns, cloud)
                 grid = build_grid(*xyz, 2, 2)
                 _label_points(np.zeros((2, 3)), np.zeros((2, 3)), grid, xyz[2], True)
                 # a ground point with a column point right above it reaches the compiled part
@@ -622,11 +658,12 @@ class GroundSegmenter:
         work_dtype = pts.dtype if pts.dtype in (np.float32, np.float64) else np.float64
         xyz = pts[:, :3].astype(work_dtype, copy=False)
         n_points = xyz.shape[0]
-        valid = valid_points_mask(xyz)
-        all_valid = bool(valid.all())
+        valid, x, y, z = compiled.run(self._backend == 'numba', _valid_columns_compiled,
+                                      _valid_columns, xyz)
+        n_valid = z.size
+        all_valid = n_valid == n_points
         # index arrays only when some points are invalid (8 bytes a point otherwise wasted)
         valid_index = slice(None) if all_valid else np.flatnonzero(valid)
-        n_valid = n_points if all_valid else int(valid_index.size)
         stats['points'] = n_points
         stats['valid_points'] = n_valid
         ground = np.zeros(n_points, dtype=bool)
@@ -637,9 +674,6 @@ class GroundSegmenter:
                                       ground_surface=GroundSurface.empty(p.num_segments,
                                                                          p.num_bins),
                                       point_z=xyz[:, 2])
-        xyz_v = xyz if all_valid else xyz[valid_index]
-        x, y, z = (np.ascontiguousarray(xyz_v[:, i]) for i in range(3))
-        del xyz_v
 
         t = time.perf_counter()
         grid = build_grid(x, y, z, p.num_segments, p.num_bins,

@@ -307,17 +307,23 @@ def test_theta_stays_inside_bounds_when_scenes_alternate(scans):
     assert theta.sigma_n < p.sigma_n_max_m and theta.sigma_f < p.sigma_f_max_m
 
 
-def test_first_known_along_rows_is_column_0_of_the_filled_rows():
-    """The anchor's length factor takes the shortcut; it must equal the full fill's column 0
-    (rows with a known first entry, a later one, none at all)."""
-    from gp_ground_segmentation.core.segmenter import (_fill_along_rows,
-                                                       _first_known_along_rows)
-    rng = np.random.default_rng(3)
+def _rows_to_fill(seed):
+    """(values, known) (40, 7): rows with a known first entry, a later one, none at all."""
+    rng = np.random.default_rng(seed)
     values = rng.normal(size=(40, 7))
     known = rng.random((40, 7)) < 0.25
     known[0] = False
     known[1] = [False] * 6 + [True]
     known[2, 0] = True
+    return values, known
+
+
+def test_first_known_along_rows_is_column_0_of_the_filled_rows():
+    """The anchor's length factor takes the shortcut; it must equal the full fill's column 0
+    (rows with a known first entry, a later one, none at all)."""
+    from gp_ground_segmentation.core.segmenter import (_fill_along_rows,
+                                                       _first_known_along_rows)
+    values, known = _rows_to_fill(3)
     np.testing.assert_array_equal(_first_known_along_rows(values, known),
                                   _fill_along_rows(values, known)[:, 0])
 
@@ -328,13 +334,8 @@ def test_compiled_fill_to_edges_equals_the_numpy_reference():
     from gp_ground_segmentation.core import segmenter as module
     if module._fill_rows_to_edges_compiled is None:
         pytest.skip('numba not installed')
-    rng = np.random.default_rng(5)
-    values = rng.normal(size=(40, 7))
-    known = rng.random((40, 7)) < 0.25
-    known[0] = False
-    known[1] = [False] * 6 + [True]
-    known[2, 0] = True
-    rows = np.flatnonzero(rng.random(40) < 0.7)
+    values, known = _rows_to_fill(5)
+    rows = np.flatnonzero(np.random.default_rng(5).random(40) < 0.7)
     rows[:3] = [0, 1, 2]
     np.testing.assert_array_equal(module._fill_rows_to_edges_compiled(values, known, rows),
                                   module._fill_rows_to_edges(values, known, rows))

@@ -22,7 +22,8 @@ ground are higher than the structures whose feet are the problem, and must not e
 ground under them.
 
 The cells are computed with numpy (vectorised: its arctan2 and log are not the compiled
-ones, bit for bit). The selection of the column points and candidates is one compiled pass,
+ones, bit for bit). The selection of the column points and candidates (with their
+coordinates in float64 for the cells) is one compiled pass,
 and so are the table of the highest column point per cell (azimuth x radial; compiled, only
 the rings each azimuth row uses) and the nine look-ups per candidate; the numpy references
 (masks and gathers; a dense table, ``np.maximum.at`` and nine gathers) give the same points
@@ -96,38 +97,43 @@ def vertical_structure_mask(x: np.ndarray, y: np.ndarray, z: np.ndarray,
     # the limits in the precision of what they are compared with, as numpy compares an array
     # with a Python float
     height_type = np.result_type(z, ground_z).type
-    column, r_col, cand, r_cand = run(
-        compiled, _select_compiled, _select_numpy, z, ground_z, candidate, r,
+    x_col, y_col, z_col, r_col, cand, x_cand, y_cand, z_cand, r_cand = run(
+        compiled, _select_compiled, _select_numpy, x, y, z, ground_z, candidate, r,
         height_type(rise_m), height_type(max_height_m), r.dtype.type(limit))
-    if cand.size == 0 or column.size == 0:
+    if cand.size == 0 or z_col.size == 0:
         return out
-    az_col, ring_col, n_az = _polar_cells(x[column], y[column], r_col, cell_m, cell_rad)
-    az_cand, ring_cand, _ = _polar_cells(x[cand], y[cand], r_cand, cell_m, cell_rad)
+    az_col, ring_col, n_az = _polar_cells(x_col, y_col, r_col, cell_m, cell_rad)
+    az_cand, ring_cand, _ = _polar_cells(x_cand, y_cand, r_cand, cell_m, cell_rad)
     width = int(max(ring_col.max(), ring_cand.max())) + 3
     # the step in z's precision, as numpy compares a float32 difference with a Python float
-    args = (az_col, ring_col, z[column], az_cand, ring_cand, z[cand], n_az, width,
+    args = (az_col, ring_col, z_col, az_cand, ring_cand, z_cand, n_az, width,
             z.dtype.type(step_m))
     out[cand] = run(compiled, _structure_hits_compiled, _structure_hits_numpy, *args)
     return out
 
 
-def _select_numpy(z, ground_z, candidate, r, rise_m, max_height_m, limit):
-    """(column, its r, candidates, their r): the indices of the points within ``limit`` of
-    the sensor that are column points (between ``rise_m`` and ``max_height_m`` above the
-    predicted ground) and those that are ``candidate``s."""
+def _select_numpy(x, y, z, ground_z, candidate, r, rise_m, max_height_m, limit):
+    """The points within ``limit`` of the sensor that are column points (between ``rise_m`` and
+    ``max_height_m`` above the predicted ground) and those that are ``candidate``s: (x, y, z,
+    r of the column points, then the candidates' indices, x, y, z, r), x, y and r in float64
+    for :func:`_polar_cells`."""
     height = z - ground_z
-    column, r_col = _within(np.flatnonzero((height > rise_m) & (height <= max_height_m)), r,
-                            limit)
-    cand, r_cand = _within(np.flatnonzero(candidate), r, limit)
-    return column, r_col, cand, r_cand
+    selected = []
+    for index in (np.flatnonzero((height > rise_m) & (height <= max_height_m)),
+                  np.flatnonzero(candidate)):
+        index, r_in = _within(index, r, limit)
+        selected += [index, np.asarray(x[index], dtype=np.float64),
+                     np.asarray(y[index], dtype=np.float64), z[index],
+                     np.asarray(r_in, dtype=np.float64)]
+    return tuple(selected[1:])
 
 
-def _select_loop(z, ground_z, candidate, r, rise_m, max_height_m, limit):
-    """:func:`_select_numpy` in one pass over the points (compiled with numba): the same
-    comparisons in the same precision, without the reference's masks and gathers."""
+def _select_loop(x, y, z, ground_z, candidate, r, rise_m, max_height_m, limit):
+    """:func:`_select_numpy` in two passes over the points (compiled with numba): the same
+    comparisons in the same precision and the same values, without the reference's masks,
+    gathers and conversions."""
     n_points = z.size
-    column = np.empty(n_points, dtype=np.intp)
-    cand = np.empty(n_points, dtype=np.intp)
+    kind = np.zeros(n_points, dtype=np.uint8)  # bit 0: column point, bit 1: candidate
     n_column = 0
     n_cand = 0
     for i in range(n_points):
@@ -135,20 +141,27 @@ def _select_loop(z, ground_z, candidate, r, rise_m, max_height_m, limit):
             continue
         height = z[i] - ground_z[i]
         if height > rise_m and height <= max_height_m:
-            column[n_column] = i
+            kind[i] = 1
             n_column += 1
         if candidate[i]:
-            cand[n_cand] = i
+            kind[i] |= 2
             n_cand += 1
-    column = column[:n_column]
-    cand = cand[:n_cand]
-    r_col = np.empty(n_column, dtype=r.dtype)
-    for k in range(n_column):
-        r_col[k] = r[column[k]]
-    r_cand = np.empty(n_cand, dtype=r.dtype)
-    for k in range(n_cand):
-        r_cand[k] = r[cand[k]]
-    return column, r_col, cand, r_cand
+    x_col, y_col, r_col = np.empty(n_column), np.empty(n_column), np.empty(n_column)
+    z_col = np.empty(n_column, dtype=z.dtype)
+    cand = np.empty(n_cand, dtype=np.intp)
+    x_cand, y_cand, r_cand = np.empty(n_cand), np.empty(n_cand), np.empty(n_cand)
+    z_cand = np.empty(n_cand, dtype=z.dtype)
+    c = 0
+    k = 0
+    for i in range(n_points):
+        if kind[i] & 1:
+            x_col[c], y_col[c], z_col[c], r_col[c] = x[i], y[i], z[i], r[i]
+            c += 1
+        if kind[i] & 2:
+            cand[k] = i
+            x_cand[k], y_cand[k], z_cand[k], r_cand[k] = x[i], y[i], z[i], r[i]
+            k += 1
+    return x_col, y_col, z_col, r_col, cand, x_cand, y_cand, z_cand, r_cand
 
 
 _select_compiled = kernel(_select_loop)

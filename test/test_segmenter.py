@@ -393,3 +393,36 @@ def test_compiled_valid_columns_equal_the_numpy_reference(dtype, columns):
         assert a.dtype == b.dtype and a.flags.c_contiguous
         np.testing.assert_array_equal(a, b)
     assert 3000 - 120 < np.count_nonzero(reference[0]) < 3000 - 60
+
+
+@pytest.mark.parametrize('worst_above_only', [False, True])
+@pytest.mark.parametrize('seed', range(4))
+def test_compiled_outlier_pass_equals_the_numpy_reference(seed, worst_above_only):
+    """New outliers of one robust pass: the compiled pass over the GP's slots gives the
+    reference's mask (leave-one-out residuals to the grid, outlier_candidates, minus the
+    outliers already known), with the anchor, empty segments and residuals on both sides."""
+    from gp_ground_segmentation.core import additions
+    from gp_ground_segmentation.core import segmenter as module
+    from gp_ground_segmentation.core.gp import FrameGP, GroundAnchor
+    if module._new_outliers_compiled is None:
+        pytest.skip('numba not installed')
+    rng = np.random.default_rng(seed)
+    m_count, n_bins = 30, 12
+    r = np.sort(rng.uniform(1.0, 40.0, (m_count, n_bins)), axis=1)
+    spikes = rng.choice([-2.0, 0.0, 2.0], (m_count, n_bins), p=[0.05, 0.85, 0.1])
+    z = rng.normal(0.0, 0.1, (m_count, n_bins)) + spikes
+    d = rng.uniform(0.3, 3.0, (m_count, n_bins))
+    mask = rng.random((m_count, n_bins)) < 0.6
+    mask[:3] = False
+    anchor = GroundAnchor(0.0, 0.01, rng.random(m_count) < 0.8, rng.uniform(0.3, 3.0, m_count))
+    gp = FrameGP(r, z, d, mask, anchor=anchor, backend='numba')
+    sol = gp.solve(np.array([0.5, 2.0, 0.1]))
+    known = mask & (rng.random(mask.shape) < 0.05)
+    args = (0.5, 0.5, worst_above_only)
+    ours = module._new_outliers_compiled(sol.alpha, sol.a_inv, gp.valid, gp.is_anchor,
+                                         gp.segments, gp.bins, known, *args)
+    reference = ~known & additions.outlier_candidates(
+        gp.to_grid(gp.loo_residuals(sol), np.nan), above_m=args[0], below_m=args[1],
+        worst_above_only=worst_above_only)
+    np.testing.assert_array_equal(ours, reference)
+    assert 5 < np.count_nonzero(reference) < np.count_nonzero(mask) // 2

@@ -383,6 +383,40 @@ def _fill_rows_to_edges_loop(values, known, rows):
 _fill_rows_to_edges_compiled = compiled.kernel(_fill_rows_to_edges_loop)
 
 
+def _new_outliers_loop(alpha, a_inv, valid, is_anchor, segments, bins, outliers, above_m,
+                       below_m, worst_above_only):
+    """(M, N) candidates not yet in ``outliers`` whose leave-one-out residual is an outlier, in
+    one pass over the GP's slots (compiled with numba). Replaces, with the same values,
+    ``~outliers & additions.outlier_candidates(gp.to_grid(gp.loo_residuals(sol), nan), ...)``
+    (the reference in ``_reject_outliers``): residual alpha_i / [A^-1]_ii of each grid
+    candidate's slot, the same comparisons, and with ``worst_above_only`` the row's highest
+    residual."""
+    new = np.zeros(outliers.shape, dtype=np.bool_)
+    n_slots = valid.shape[1]
+    for s in range(segments.size):
+        m = segments[s]
+        top = -np.inf  # the segment's highest residual (NaN residuals do not count)
+        if worst_above_only:
+            for i in range(n_slots):
+                if valid[s, i] and not is_anchor[s, i]:
+                    loo = alpha[s, i] / a_inv[s, i, i]
+                    if loo > top:
+                        top = loo
+        for i in range(n_slots):
+            if not valid[s, i] or is_anchor[s, i]:
+                continue
+            loo = alpha[s, i] / a_inv[s, i, i]
+            above = loo > above_m
+            if worst_above_only and above:
+                above = loo >= top
+            b = bins[s, i]
+            new[m, b] = (above or loo < -below_m) and not outliers[m, b]
+    return new
+
+
+_new_outliers_compiled = compiled.kernel(_new_outliers_loop)
+
+
 def _first_known_along_rows(values: np.ndarray, known: np.ndarray) -> np.ndarray:
     """Column 0 of ``_fill_along_rows(values, known)`` without filling the rows: each row's
     first known entry, the last entry in a row without one."""
@@ -424,8 +458,8 @@ class GroundSegmenter:
     def warm_up(self) -> None:
         """Compile (or load from numba's cache) the GP step now, not inside the first frame, and
         have the stages with a bit-identical numpy twin (valid points, grid pass, line growing,
-        plateau state machine, GP batch padding, length factors at the bin edges,
-        cross-segment rise, label pass, structure selection and look-ups, surface offsets)
+        plateau state machine, GP batch padding, outlier pass, length factors at the bin
+        edges, cross-segment rise, label pass, structure selection and look-ups, surface offsets)
         compiled in the background (core/compiled.py; up to _BACKGROUND_WAIT_S is waited for
         them, enough to load them from the cache). See gp_compiled.py for where the cache lives.
 
@@ -457,10 +491,12 @@ class GroundSegmenter:
             additions.elevated_plateaus(grid.candidate_r, grid.candidate_z, lines.slope_before,
                                         step_up_m=0.3, max_slope=1.0, max_gap_m=1.0)
             ground_offsets(np.zeros(1), np.zeros(1, np.int32), np.zeros(1, np.int32), 1, 1, 0.1)
-            # the GP batch's padding, the length factors at the bin edges, the threshold's rise
+            # the GP batch's padding, the outlier pass, the length factors at the bin edges, the
+            # threshold's rise
             additions.cross_segment_rise(np.ones((2, 3)), np.ones((2, 3)), 1.0)
             gp = FrameGP(grid.candidate_r, grid.candidate_z, np.ones((2, 2)), grid.has_candidate,
                          backend='numba')
+            self._reject_outliers(gp, gp.solve(np.ones(3)), np.zeros(gp.shape, dtype=bool))
             compiled.run(True, _fill_rows_to_edges_compiled, _fill_rows_to_edges,
                          np.ones((2, 2)), grid.has_candidate, gp.segments)
             # These stages compile in the background (core/compiled.py); loading them from
@@ -548,10 +584,17 @@ class GroundSegmenter:
         p = self._params
         if not p.use_outlier_rejection:
             return gp, sol, outliers
-        loo = gp.to_grid(gp.loo_residuals(sol), np.nan)
-        new = ~outliers & additions.outlier_candidates(
-            loo, above_m=p.outlier_residual_m, below_m=p.noise_spike_m,
-            worst_above_only=p.outlier_worst_per_segment)
+
+        def reference(*_):
+            loo = gp.to_grid(gp.loo_residuals(sol), np.nan)
+            return ~outliers & additions.outlier_candidates(
+                loo, above_m=p.outlier_residual_m, below_m=p.noise_spike_m,
+                worst_above_only=p.outlier_worst_per_segment)
+
+        new = compiled.run(gp.backend == 'numba', _new_outliers_compiled, reference, sol.alpha,
+                           sol.a_inv, gp.valid, gp.is_anchor, gp.segments, gp.bins, outliers,
+                           float(p.outlier_residual_m), float(p.noise_spike_m),
+                           bool(p.outlier_worst_per_segment))
         if not new.any():
             return gp, sol, outliers
         outliers = outliers | new

@@ -1,7 +1,8 @@
 # SPDX-License-Identifier: Apache-2.0
 """Dump the ground masks of the shared real frames and the synthetic scenes, or compare two dumps.
 
-A refactor must leave the labels unchanged. Run this against the old tree and the new one with
+A refactor must leave the labels unchanged (and theta: each frame's learned hyperparameters
+are dumped and compared too, exactly). Run this against the old tree and the new one with
 the same parameters and compare (``PYTHONPATH`` picks the tree; the script itself only uses the
 public API ``GroundSegmenter(params).segment(points)``)::
 
@@ -49,7 +50,9 @@ def dump(out, fixed_theta):
     for name, points in frames():
         segmenter = GroundSegmenter(params)
         for rep in ('cold', 'warm'):
-            masks[f'{name}|{rep}'] = segmenter.segment(points).ground_mask
+            result = segmenter.segment(points)
+            masks[f'{name}|{rep}'] = result.ground_mask
+            masks[f'{name}|{rep}|theta'] = np.asarray(result.hyperparameters, dtype=np.float64)
         print(f'{name}: {points.shape[0]} points, {int(masks[name + "|warm"].sum())} ground')
     np.savez_compressed(out, **masks)
 
@@ -58,13 +61,18 @@ def compare(old, new):
     a, b = np.load(old), np.load(new)
     if set(a.files) != set(b.files):
         sys.exit(f'different frames: {sorted(set(a.files) ^ set(b.files))}')
-    total = 0
+    total = thetas = 0
     for key in sorted(a.files):
+        if key.endswith('|theta'):  # exact: a refactor must not move theta by one ulp
+            thetas += int(not np.array_equal(a[key], b[key]))
+            continue
         diff = int(np.count_nonzero(a[key] != b[key]))
         total += diff
         print(f'{key:55s} {a[key].size:8d} points {diff:6d} labels differ')
     print(f'total differing labels: {total}')
-    return total
+    if any(key.endswith('|theta') for key in a.files):
+        print(f'frames with a different theta: {thetas}')
+    return total + thetas
 
 
 def main():

@@ -209,8 +209,10 @@ def compiled_and_reference(function, *args, **kwargs):
     if not compiled.AVAILABLE:
         pytest.skip('numba not installed')
     compiled_ready(function, *args, compiled=True, **kwargs)
-    return (function(*args, compiled=True, **kwargs),
-            function(*args, compiled=False, **kwargs))
+    out = (function(*args, compiled=True, **kwargs), function(*args, compiled=False, **kwargs))
+    # a kernel that failed to compile runs its reference: the comparison would prove nothing
+    assert not compiled._failed, f'kernels that did not compile: {compiled._failed}'
+    return out
 
 
 def candidate_grid(source: str):

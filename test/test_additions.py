@@ -307,3 +307,51 @@ def test_compiled_plateaus_equal_the_numpy_reference_on_real_candidates(source):
             end_on_drop=p.plateau_ends_on_drop)
         assert np.count_nonzero(reference) > 10
         assert np.array_equal(compiled, reference)
+
+
+# --- compiled chord slopes and first-line intercepts == numpy references ---------------------
+
+def _random_lines(seed):
+    """Random candidates (some empty, equal r: infinite chords) and their lines."""
+    from gp_ground_segmentation.core.lines import extract_lines
+    rng = np.random.default_rng(seed)
+    m, n = 50, 24
+    cand_r = np.sort(rng.uniform(1.0, 40.0, (m, n)), axis=1)
+    cand_r[:, 6] = cand_r[:, 5]
+    cand_z = 0.03 * cand_r + rng.choice([0.0, 0.5, 1.5], (m, n), p=[.8, .1, .1])
+    empty = rng.random((m, n)) < 0.3
+    empty[4] = True
+    cand_r[empty], cand_z[empty] = NAN, NAN
+    lines = extract_lines(cand_r, cand_z, np.ones((m, n)), variance_ratio=1.0, max_slope=0.7,
+                          max_distance_m=0.1, max_gap_m=6.0, max_density_jump=10.0)
+    return cand_r, cand_z, lines
+
+
+def _real_lines(source):
+    from conftest import candidate_grid
+    from gp_ground_segmentation.core.lines import extract_lines
+    g, p = candidate_grid(source)
+    lines = extract_lines(g.candidate_r, g.candidate_z, g.density,
+                          variance_ratio=p.deming_variance_ratio, max_slope=p.line_max_slope,
+                          max_distance_m=p.line_max_distance_m, max_gap_m=p.line_max_gap_m,
+                          max_density_jump=p.line_max_density_jump)
+    return g.candidate_r, g.candidate_z, lines
+
+
+@pytest.mark.parametrize('source', [0, 1, 2, 'sensors/velodyne_vlp16.pcd',
+                                    'kitti_sequnknown_spvnas_000000.bin'])
+def test_compiled_chord_slopes_and_anchor_equal_the_numpy_references(source):
+    from conftest import compiled_and_reference
+    cand_r, cand_z, lines = (_random_lines(source) if isinstance(source, int)
+                             else _real_lines(source))
+    compiled, reference = compiled_and_reference(one_point_line_slopes, lines.slope, cand_r,
+                                                 cand_z)
+    assert np.array_equal(compiled, reference, equal_nan=True)
+    assert np.isnan(lines.slope).sum() > np.isnan(reference).sum()  # chords were filled in
+    steep = reference > 0.7
+    present = np.isfinite(cand_z)
+    for training in (present & ~steep, present & np.isnan(lines.slope), present & False):
+        compiled, reference = compiled_and_reference(
+            ground_under_sensor, cand_z, training, lines.line_id, lines.line_count,
+            lines.intercept)
+        assert compiled == reference

@@ -183,19 +183,15 @@ def _grid_pass(x, y, z, angle, m_count, n_count):
     r_min = np.full(m_count, np.inf)
     r_max = np.full(m_count, -np.inf)
     to_segment = m_count / (2.0 * np.pi)
-    ok = True
+    for i in range(p_count):  # no branch in this loop: it vectorises
+        xi, yi = np.float64(x[i]), np.float64(y[i])
+        r64[i] = np.sqrt(xi * xi + yi * yi)
+        seg[i] = min(int((angle[i] + np.pi) * to_segment), m_count - 1)
     # a scan comes in azimuth order: the range of the current segment is kept in registers and
     # stored when the segment changes (exact: min and max do not round)
     run_s, run_min, run_max = 0, np.inf, -np.inf
     for i in range(p_count):
-        xi, yi = np.float64(x[i]), np.float64(y[i])
-        r = np.sqrt(xi * xi + yi * yi)
-        if not np.isfinite(r):
-            ok = False
-            break
-        s = min(int((angle[i] + np.pi) * to_segment), m_count - 1)
-        r64[i] = r
-        seg[i] = s
+        s, r = seg[i], r64[i]
         if s != run_s:
             r_min[run_s] = min(r_min[run_s], run_min)
             r_max[run_s] = max(r_max[run_s], run_max)
@@ -204,9 +200,10 @@ def _grid_pass(x, y, z, angle, m_count, n_count):
         run_max = max(run_max, r)
     r_min[run_s] = min(r_min[run_s], run_min)
     r_max[run_s] = max(r_max[run_s], run_max)
-    if not ok:
-        return (ok, point_r, seg, bins, fraction, r_min, r_max, count, candidate_index,
-                cand_r, cand_z, density)
+    for s in range(m_count):
+        if r_max[s] == np.inf:  # x, y are finite: only an overflowing r is not
+            return (False, point_r, seg, bins, fraction, r_min, r_max, count,
+                    candidate_index, cand_r, cand_z, density)
     r_min, width, inv_width = _segment_widths_compiled(r_min, r_max, n_count)
     for i in range(p_count):
         s = seg[i]
@@ -236,7 +233,7 @@ def _grid_pass(x, y, z, angle, m_count, n_count):
             inner = r_min[s] + k * width[s]
             outer = inner + width[s]
             density[key] = count[key] / (sector * width[s] * (outer + inner))
-    return (ok, point_r, seg, bins, fraction, r_min, width, count, candidate_index, cand_r,
+    return (True, point_r, seg, bins, fraction, r_min, width, count, candidate_index, cand_r,
             cand_z, density)
 
 

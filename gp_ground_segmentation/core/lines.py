@@ -303,6 +303,8 @@ def _grow_lines_loop(present, rr, zz, density, moments, variance_ratio, max_slop
             slope_before[m, k] = np.nan
             line_id[m, k] = -1
     joined = np.zeros(6)
+    line_alpha = np.full(m_count, np.nan)
+    line_beta = np.full(m_count, np.nan)
     next_line = 0
     for k in range(n_count):
         column_has = False
@@ -315,8 +317,9 @@ def _grow_lines_loop(present, rr, zz, density, moments, variance_ratio, max_slop
             n = sums[0, m]
             critical = False
             if has and n > 0:
-                alpha, beta = _deming_scalar(sums[0, m], sums[1, m], sums[2, m], sums[3, m],
-                                             sums[4, m], sums[5, m], variance_ratio)
+                # the current line's fit (used from 2 points on) is the joined fit made when
+                # its last candidate joined: the same sums, so no second Deming fit
+                alpha, beta = line_alpha[m], line_beta[m]
                 if n >= 2:
                     slope_before[m, k] = beta
                 r, z, rho = rr[m, k], zz[m, k], density[m, k]
@@ -327,10 +330,13 @@ def _grow_lines_loop(present, rr, zz, density, moments, variance_ratio, max_slop
                                   > max_distance_m)
                 for j in range(6):
                     joined[j] = sums[j, m] + moments[j, m, k]
-                beta_new = _deming_scalar(joined[0], joined[1], joined[2], joined[3],
-                                          joined[4], joined[5], variance_ratio)[1]
+                alpha_new, beta_new = _deming_scalar(joined[0], joined[1], joined[2],
+                                                     joined[3], joined[4], joined[5],
+                                                     variance_ratio)
                 steep = np.abs(beta_new) > max_slope
                 critical = gap or jump or far or steep
+                # read as the current fit only once it joined (n >= 2)
+                line_alpha[m], line_beta[m] = alpha_new, beta_new
             if (has and not n > 0) or critical:
                 current_line[m] = next_line
                 next_line += 1

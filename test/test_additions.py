@@ -2,6 +2,8 @@
 """Unit tests of our additions to the paper (additions.py), with hand-computed expectations,
 and of the switches that turn each one off in the segmenter."""
 
+import math
+
 import numpy as np
 import pytest
 
@@ -355,3 +357,20 @@ def test_compiled_chord_slopes_and_anchor_equal_the_numpy_references(source):
             ground_under_sensor, cand_z, training, lines.line_id, lines.line_count,
             lines.intercept)
         assert compiled == reference
+
+
+@pytest.mark.parametrize('size', [1, 2, 3, 4, 119, 120])
+def test_compiled_median_equals_np_median(size):
+    """Odd and even counts; ties; zeros of both signs in the middle (np.median decides)."""
+    from conftest import compiled_and_reference
+    from gp_ground_segmentation.core.additions import _median
+    rng = np.random.default_rng(size)
+
+    def median(values, compiled=True):
+        return _median(values, compiled)
+    cases = [rng.normal(-1.7, 0.3, size), np.round(rng.normal(0.0, 0.02, size), 2),
+             rng.choice([-0.0, 0.0, -1e-300, 2.0], size), np.full(size, -0.0)]
+    for values in cases:
+        compiled, reference = compiled_and_reference(median, values)
+        assert compiled == reference == float(np.median(values))
+        assert math.copysign(1.0, compiled) == math.copysign(1.0, reference)

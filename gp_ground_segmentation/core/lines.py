@@ -151,13 +151,12 @@ def _lines_loop(cand_r, cand_z, density, variance_ratio, max_slope, max_distance
                 max_gap_m, low_density, high_density):
     """:func:`_lines_numpy` as scalar loops (compiled with numba): the same values in the same
     order (the line sums accumulate in ``np.bincount``'s order, row by row), so the same
-    outputs. It replaces the numpy set-up (``relative_to_first``, the moments stack) and the
+    outputs. It replaces the numpy set-up (``relative_to_first``, the moments array) and the
     final fit (bincounts, ``minimum.at``, gathers): ~30 numpy calls of 1-10 us each."""
     m_count, n_count = cand_r.shape
     present = np.empty((m_count, n_count), dtype=np.bool_)
     rr = np.empty((m_count, n_count))
     zz = np.empty((m_count, n_count))
-    moments = np.zeros((6, m_count, n_count))
     r0 = np.zeros(m_count)
     z0 = np.zeros(m_count)
     for m in range(m_count):
@@ -169,20 +168,11 @@ def _lines_loop(cand_r, cand_z, density, variance_ratio, max_slope, max_distance
                 z0[m] = cand_z[m, k]
                 break
         for k in range(n_count):
-            r = cand_r[m, k] - r0[m]
-            z = cand_z[m, k] - z0[m]
-            rr[m, k] = r
-            zz[m, k] = z
-            if present[m, k]:
-                moments[0, m, k] = 1.0
-                moments[1, m, k] = r
-                moments[2, m, k] = z
-                moments[3, m, k] = r * r
-                moments[4, m, k] = z * z
-                moments[5, m, k] = r * z
+            rr[m, k] = cand_r[m, k] - r0[m]
+            zz[m, k] = cand_z[m, k] - z0[m]
     line_id, is_critical, slope_before, num_lines = _grow_lines_compiled(
-        present, rr, zz, density, moments, variance_ratio, max_slope, max_distance_m,
-        max_gap_m, low_density, high_density)
+        present, rr, zz, density, variance_ratio, max_slope, max_distance_m, max_gap_m,
+        low_density, high_density)
 
     sums = np.zeros((6, num_lines))
     line_seg = np.zeros(num_lines, dtype=np.intp)
@@ -190,10 +180,15 @@ def _lines_loop(cand_r, cand_z, density, variance_ratio, max_slope, max_distance
     r_hi = np.full(num_lines, -np.inf)
     for m in range(m_count):
         for k in range(n_count):
-            if present[m, k]:
+            if present[m, k]:  # the moments, summed as np.bincount sums them
                 i = line_id[m, k]
-                for j in range(6):
-                    sums[j, i] += moments[j, m, k]
+                r, z = rr[m, k], zz[m, k]
+                sums[0, i] += 1.0
+                sums[1, i] += r
+                sums[2, i] += z
+                sums[3, i] += r * r
+                sums[4, i] += z * z
+                sums[5, i] += r * z
                 line_seg[i] = m
                 r_lo[i] = min(r_lo[i], cand_r[m, k])
                 r_hi[i] = max(r_hi[i], cand_r[m, k])
@@ -283,9 +278,11 @@ def _deming_scalar(n, s_r, s_z, s_rr, s_zz, s_rz, variance_ratio):
     return mean_z - beta * mean_r, beta
 
 
-def _grow_lines_loop(present, rr, zz, density, moments, variance_ratio, max_slope,
-                     max_distance_m, max_gap_m, low_density, high_density):
-    """:func:`_grow_lines_numpy` as scalar loops (compiled with numba): same outputs."""
+def _grow_lines_loop(present, rr, zz, density, variance_ratio, max_slope, max_distance_m,
+                     max_gap_m, low_density, high_density):
+    """:func:`_grow_lines_numpy` as scalar loops (compiled with numba): same outputs. The
+    moments of a candidate, (1, r, z, r^2, z^2, r z) or 0 where there is none, are made here
+    as the reference's ``moments`` array holds them."""
     # np.empty and fill loops rather than np.full: they compile faster
     m_count, n_count = present.shape
     sums = np.zeros((6, m_count))
@@ -303,6 +300,7 @@ def _grow_lines_loop(present, rr, zz, density, moments, variance_ratio, max_slop
             slope_before[m, k] = np.nan
             line_id[m, k] = -1
     joined = np.zeros(6)
+    moment = np.zeros(6)
     line_alpha = np.full(m_count, np.nan)
     line_beta = np.full(m_count, np.nan)
     next_line = 0
@@ -315,6 +313,13 @@ def _grow_lines_loop(present, rr, zz, density, moments, variance_ratio, max_slop
         for m in range(m_count):
             has = present[m, k]
             n = sums[0, m]
+            r, z = rr[m, k], zz[m, k]
+            if has:
+                moment[0], moment[1], moment[2] = 1.0, r, z
+                moment[3], moment[4], moment[5] = r * r, z * z, r * z
+            else:
+                for j in range(6):
+                    moment[j] = 0.0
             critical = False
             if has and n > 0:
                 # the current line's fit (used from 2 points on) is the joined fit made when
@@ -322,14 +327,14 @@ def _grow_lines_loop(present, rr, zz, density, moments, variance_ratio, max_slop
                 alpha, beta = line_alpha[m], line_beta[m]
                 if n >= 2:
                     slope_before[m, k] = beta
-                r, z, rho = rr[m, k], zz[m, k], density[m, k]
+                rho = density[m, k]
                 gap = r - last_r[m] > max_gap_m
                 ratio = rho / last_rho[m]
                 jump = ratio > high_density or ratio < low_density
                 far = n >= 2 and (np.abs(z - alpha - beta * r) / np.sqrt(1.0 + beta * beta)
                                   > max_distance_m)
                 for j in range(6):
-                    joined[j] = sums[j, m] + moments[j, m, k]
+                    joined[j] = sums[j, m] + moment[j]
                 alpha_new, beta_new = _deming_scalar(joined[0], joined[1], joined[2],
                                                      joined[3], joined[4], joined[5],
                                                      variance_ratio)
@@ -341,10 +346,10 @@ def _grow_lines_loop(present, rr, zz, density, moments, variance_ratio, max_slop
                 current_line[m] = next_line
                 next_line += 1
                 for j in range(6):
-                    sums[j, m] = 0.0 + moments[j, m, k]
+                    sums[j, m] = 0.0 + moment[j]
             else:
                 for j in range(6):
-                    sums[j, m] = sums[j, m] + moments[j, m, k]
+                    sums[j, m] = sums[j, m] + moment[j]
             if has:
                 line_id[m, k] = current_line[m]
                 last_r[m] = rr[m, k]

@@ -292,9 +292,8 @@ def test_compiled_plateaus_equal_the_numpy_reference_on_random_candidates(
     assert np.array_equal(compiled, reference)
 
 
-@pytest.mark.parametrize('source', ['sensors/velodyne_vlp16.pcd',
-                                    'kitti_sequnknown_spvnas_000000.bin'])
-def test_compiled_plateaus_equal_the_numpy_reference_on_real_candidates(source):
+def _real_lines(source):
+    """(candidate r, z, LineSegments) of a scan or scene at the default parameters."""
     from conftest import candidate_grid
     from gp_ground_segmentation.core.lines import extract_lines
     g, p = candidate_grid(source)
@@ -302,9 +301,17 @@ def test_compiled_plateaus_equal_the_numpy_reference_on_real_candidates(source):
                           variance_ratio=p.deming_variance_ratio, max_slope=p.line_max_slope,
                           max_distance_m=p.line_max_distance_m, max_gap_m=p.line_max_gap_m,
                           max_density_jump=p.line_max_density_jump)
-    for start in (None, float(np.nanmedian(g.candidate_z))):
+    return g.candidate_r, g.candidate_z, lines
+
+
+@pytest.mark.parametrize('source', ['sensors/velodyne_vlp16.pcd',
+                                    'kitti_sequnknown_spvnas_000000.bin'])
+def test_compiled_plateaus_equal_the_numpy_reference_on_real_candidates(source):
+    cand_r, cand_z, lines = _real_lines(source)
+    p = SegmenterParams()
+    for start in (None, float(np.nanmedian(cand_z))):
         compiled, reference = _both_plateaus(
-            g.candidate_r, g.candidate_z, lines.slope_before, step_up_m=p.plateau_step_m,
+            cand_r, cand_z, lines.slope_before, step_up_m=p.plateau_step_m,
             max_slope=p.line_max_slope, max_gap_m=p.line_max_gap_m, start_height_m=start,
             end_on_drop=p.plateau_ends_on_drop)
         assert np.count_nonzero(reference) > 10
@@ -327,17 +334,6 @@ def _random_lines(seed):
     lines = extract_lines(cand_r, cand_z, np.ones((m, n)), variance_ratio=1.0, max_slope=0.7,
                           max_distance_m=0.1, max_gap_m=6.0, max_density_jump=10.0)
     return cand_r, cand_z, lines
-
-
-def _real_lines(source):
-    from conftest import candidate_grid
-    from gp_ground_segmentation.core.lines import extract_lines
-    g, p = candidate_grid(source)
-    lines = extract_lines(g.candidate_r, g.candidate_z, g.density,
-                          variance_ratio=p.deming_variance_ratio, max_slope=p.line_max_slope,
-                          max_distance_m=p.line_max_distance_m, max_gap_m=p.line_max_gap_m,
-                          max_density_jump=p.line_max_density_jump)
-    return g.candidate_r, g.candidate_z, lines
 
 
 @pytest.mark.parametrize('source', [0, 1, 2, 'sensors/velodyne_vlp16.pcd',

@@ -209,11 +209,10 @@ def _grid_pass(x, y, z, angle, m_count, n_count):
         s = seg[i]
         r = r64[i]
         position = (r - r_min[s]) * inv_width[s]
-        b = int(position)
+        # the reference's "last bin, fraction 1" for position >= N without a branch: there
+        # position - (N - 1) >= 1 is clipped to 1 like every fraction
+        b = min(int(position), n_count - 1)
         f = min(position - b, 1.0)
-        if b >= n_count:
-            b = n_count - 1
-            f = 1.0
         bins[i] = b
         fraction[i] = f  # rounded to the input's dtype, as astype does
         point_r[i] = r

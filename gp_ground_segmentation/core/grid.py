@@ -93,6 +93,8 @@ def _angle(x, y):
 
 
 def _segment_of_angle(theta, num_segments):
+    """int32 segment index of float64 azimuths ``theta`` in [-pi, pi] (numpy; the compiled grid
+    pass does the same per point)."""
     seg = ((theta + np.pi) * (num_segments / (2.0 * np.pi))).astype(np.int32)
     # arctan2 can return exactly +pi, which would land in segment M: clip, never wrap silently.
     return np.minimum(seg, num_segments - 1, out=seg)

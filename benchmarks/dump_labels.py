@@ -1,10 +1,9 @@
 # SPDX-License-Identifier: Apache-2.0
 """Dump the ground masks of the shared real frames and the synthetic scenes, or compare two dumps.
 
-Each frame's dump holds its ground mask, its ground height and the theta it ended with, so a
-change that must not alter results is checked on all three (equal bit for bit, NaN equals NaN).
-
-A refactor must leave the labels unchanged. Run this against the old tree and the new one with
+A refactor must leave the labels unchanged (and theta and the ground height: each frame's
+learned hyperparameters and per-point ground height are dumped and compared too, exactly; NaN
+heights of invalid points equal each other). Run this against the old tree and the new one with
 the same parameters and compare (``PYTHONPATH`` picks the tree; the script itself only uses the
 public API ``GroundSegmenter(params).segment(points)``)::
 
@@ -54,8 +53,8 @@ def dump(out, fixed_theta):
         for rep in ('cold', 'warm'):
             result = segmenter.segment(points)
             masks[f'{name}|{rep}'] = result.ground_mask
+            masks[f'{name}|{rep}|theta'] = np.asarray(result.hyperparameters, dtype=np.float64)
             masks[f'{name}|{rep}|height'] = result.ground_height
-            masks[f'{name}|{rep}|theta'] = np.array(result.hyperparameters, dtype=np.float64)
         print(f'{name}: {points.shape[0]} points, {int(masks[name + "|warm"].sum())} ground')
     np.savez_compressed(out, **masks)
 
@@ -64,17 +63,23 @@ def compare(old, new):
     a, b = np.load(old), np.load(new)
     if set(a.files) != set(b.files):
         sys.exit(f'different frames: {sorted(set(a.files) ^ set(b.files))}')
-    total = 0
+    total = thetas = 0
     for key in sorted(a.files):
+        if key.endswith('|theta'):  # exact: a refactor must not move theta by one ulp
+            thetas += int(not np.array_equal(a[key], b[key]))
+            continue
         old_value, new_value = a[key], b[key]
-        same = (old_value == new_value) | (np.isnan(old_value) & np.isnan(new_value)
-                                           if old_value.dtype.kind == 'f' else False)
-        diff = int(np.count_nonzero(~same))
+        differ = old_value != new_value
+        if old_value.dtype.kind == 'f':
+            differ &= ~(np.isnan(old_value) & np.isnan(new_value))
+        diff = int(np.count_nonzero(differ))
         total += diff
-        what = key.rsplit('|', 1)[-1] if key.count('|') > 1 else 'labels'
-        print(f'{key:62s} {old_value.size:8d} values {diff:6d} {what} differ')
-    print(f'total differing values: {total}')
-    return total
+        what = 'heights' if key.endswith('|height') else 'labels'
+        print(f'{key:62s} {old_value.size:8d} points {diff:6d} {what} differ')
+    print(f'total differing labels and heights: {total}')
+    if any(key.endswith('|theta') for key in a.files):
+        print(f'frames with a different theta: {thetas}')
+    return total + thetas
 
 
 def main():

@@ -2,6 +2,8 @@
 """Unit tests of our additions to the paper (additions.py), with hand-computed expectations,
 and of the switches that turn each one off in the segmenter."""
 
+import math
+
 import numpy as np
 import pytest
 
@@ -290,9 +292,8 @@ def test_compiled_plateaus_equal_the_numpy_reference_on_random_candidates(
     assert np.array_equal(compiled, reference)
 
 
-@pytest.mark.parametrize('source', ['sensors/velodyne_vlp16.pcd',
-                                    'kitti_sequnknown_spvnas_000000.bin'])
-def test_compiled_plateaus_equal_the_numpy_reference_on_real_candidates(source):
+def _real_lines(source):
+    """(candidate r, z, LineSegments) of a scan or scene at the default parameters."""
     from conftest import candidate_grid
     from gp_ground_segmentation.core.lines import extract_lines
     g, p = candidate_grid(source)
@@ -300,9 +301,17 @@ def test_compiled_plateaus_equal_the_numpy_reference_on_real_candidates(source):
                           variance_ratio=p.deming_variance_ratio, max_slope=p.line_max_slope,
                           max_distance_m=p.line_max_distance_m, max_gap_m=p.line_max_gap_m,
                           max_density_jump=p.line_max_density_jump)
-    for start in (None, float(np.nanmedian(g.candidate_z))):
+    return g.candidate_r, g.candidate_z, lines
+
+
+@pytest.mark.parametrize('source', ['sensors/velodyne_vlp16.pcd',
+                                    'kitti_sequnknown_spvnas_000000.bin'])
+def test_compiled_plateaus_equal_the_numpy_reference_on_real_candidates(source):
+    cand_r, cand_z, lines = _real_lines(source)
+    p = SegmenterParams()
+    for start in (None, float(np.nanmedian(cand_z))):
         compiled, reference = _both_plateaus(
-            g.candidate_r, g.candidate_z, lines.slope_before, step_up_m=p.plateau_step_m,
+            cand_r, cand_z, lines.slope_before, step_up_m=p.plateau_step_m,
             max_slope=p.line_max_slope, max_gap_m=p.line_max_gap_m, start_height_m=start,
             end_on_drop=p.plateau_ends_on_drop)
         assert np.count_nonzero(reference) > 10
@@ -327,3 +336,57 @@ def test_compiled_cross_segment_rise_equals_the_numpy_reference(seed):
     additions._rise_compiled(edges, mean, 0.3, float(np.nanmax(edges)) + 1.0)  # compiled now
     ours = additions.cross_segment_rise(edges, mean, 0.3)
     np.testing.assert_array_equal(ours, reference)
+
+
+# --- compiled chord slopes and first-line intercepts == numpy references ---------------------
+
+def _random_lines(seed):
+    """Random candidates (some empty, equal r: infinite chords) and their lines."""
+    from gp_ground_segmentation.core.lines import extract_lines
+    rng = np.random.default_rng(seed)
+    m, n = 50, 24
+    cand_r = np.sort(rng.uniform(1.0, 40.0, (m, n)), axis=1)
+    cand_r[:, 6] = cand_r[:, 5]
+    cand_z = 0.03 * cand_r + rng.choice([0.0, 0.5, 1.5], (m, n), p=[.8, .1, .1])
+    empty = rng.random((m, n)) < 0.3
+    empty[4] = True
+    cand_r[empty], cand_z[empty] = NAN, NAN
+    lines = extract_lines(cand_r, cand_z, np.ones((m, n)), variance_ratio=1.0, max_slope=0.7,
+                          max_distance_m=0.1, max_gap_m=6.0, max_density_jump=10.0)
+    return cand_r, cand_z, lines
+
+
+@pytest.mark.parametrize('source', [0, 1, 2, 'sensors/velodyne_vlp16.pcd',
+                                    'kitti_sequnknown_spvnas_000000.bin'])
+def test_compiled_chord_slopes_and_anchor_equal_the_numpy_references(source):
+    from conftest import compiled_and_reference
+    cand_r, cand_z, lines = (_random_lines(source) if isinstance(source, int)
+                             else _real_lines(source))
+    compiled, reference = compiled_and_reference(one_point_line_slopes, lines.slope, cand_r,
+                                                 cand_z)
+    assert np.array_equal(compiled, reference, equal_nan=True)
+    assert np.isnan(lines.slope).sum() > np.isnan(reference).sum()  # chords were filled in
+    steep = reference > 0.7
+    present = np.isfinite(cand_z)
+    for training in (present & ~steep, present & np.isnan(lines.slope), present & False):
+        compiled, reference = compiled_and_reference(
+            ground_under_sensor, cand_z, training, lines.line_id, lines.line_count,
+            lines.intercept)
+        assert compiled == reference
+
+
+@pytest.mark.parametrize('size', [1, 2, 3, 4, 119, 120])
+def test_compiled_median_equals_np_median(size):
+    """Odd and even counts; ties; zeros of both signs in the middle (np.median decides)."""
+    from conftest import compiled_and_reference
+    from gp_ground_segmentation.core.additions import _median
+    rng = np.random.default_rng(size)
+
+    def median(values, compiled=True):
+        return _median(values, compiled)
+    cases = [rng.normal(-1.7, 0.3, size), np.round(rng.normal(0.0, 0.02, size), 2),
+             rng.choice([-0.0, 0.0, -1e-300, 2.0], size), np.full(size, -0.0)]
+    for values in cases:
+        compiled, reference = compiled_and_reference(median, values)
+        assert compiled == reference == float(np.median(values))
+        assert math.copysign(1.0, compiled) == math.copysign(1.0, reference)

@@ -27,6 +27,8 @@ candidates like the others, applied by the segmenter after Algorithm 1.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from .compiled import kernel, run
@@ -70,23 +72,24 @@ def elevated_plateaus(cand_r: np.ndarray, cand_z: np.ndarray, slope_before: np.n
     ``compiled``: a numba loop over bins and segments when numba imports (else, or if it
     fails, the numpy reference, vectorised over the segments); both give the same mask.
     """
-    present, rr, zz, r0, z0 = relative_to_first(cand_r, cand_z)
-    m_count = cand_r.shape[0]
-    last_r = np.full(m_count, np.nan)
-    last_z = np.full(m_count, np.nan)
-    if start_height_m is not None:
-        last_r = -r0
-        last_z = start_height_m - z0
-    args = (present, rr, zz, np.asarray(slope_before, dtype=np.float64), last_r, last_z,
-            float(step_up_m), float(max_slope), float(max_gap_m), bool(end_on_drop))
+    from_sensor = start_height_m is not None
+    args = (cand_r, cand_z, np.asarray(slope_before, dtype=np.float64), from_sensor,
+            float(start_height_m) if from_sensor else 0.0, float(step_up_m), float(max_slope),
+            float(max_gap_m), bool(end_on_drop))
     return run(compiled, _plateaus_compiled, _plateaus_numpy, *args)
 
 
-def _plateaus_numpy(present, rr, zz, slope_before, last_r, last_z, step_up_m, max_slope,
-                    max_gap_m, end_on_drop):
+def _plateaus_numpy(cand_r, cand_z, slope_before, from_sensor, start_height_m, step_up_m,
+                    max_slope, max_gap_m, end_on_drop):
     """The numpy reference of :func:`elevated_plateaus`' state machine (all segments at once).
     """
+    present, rr, zz, r0, z0 = relative_to_first(cand_r, cand_z)
     m_count, n_count = present.shape
+    last_r = np.full(m_count, np.nan)
+    last_z = np.full(m_count, np.nan)
+    if from_sensor:
+        last_r = -r0
+        last_z = start_height_m - z0
     elevated_now = np.zeros(m_count, dtype=bool)
     base_r = np.zeros(m_count)  # ground r, z and slope just before the step up
     base_z = np.zeros(m_count)
@@ -120,22 +123,31 @@ def _plateaus_numpy(present, rr, zz, slope_before, last_r, last_z, step_up_m, ma
     return elevated
 
 
-def _plateaus_loop(present, rr, zz, slope_before, last_r, last_z, step_up_m, max_slope,
-                   max_gap_m, end_on_drop):
+def _plateaus_loop(cand_r, cand_z, slope_before, from_sensor, start_height_m, step_up_m,
+                   max_slope, max_gap_m, end_on_drop):
     """:func:`_plateaus_numpy` one segment and bin at a time (compiled with numba): the same
-    comparisons of the same values, so the same mask."""
-    m_count, n_count = present.shape
+    comparisons of the same values, so the same mask. Heights relative to each segment's first
+    candidate are taken here, as ``relative_to_first`` does (one numpy pass less)."""
+    m_count, n_count = cand_r.shape
     elevated = np.zeros((m_count, n_count), dtype=np.bool_)
     for m in range(m_count):
-        prev_r, prev_z = last_r[m], last_z[m]
+        r0 = 0.0
+        z0 = 0.0
+        for k in range(n_count):
+            if np.isfinite(cand_r[m, k]) and np.isfinite(cand_z[m, k]):
+                r0, z0 = cand_r[m, k], cand_z[m, k]
+                break
+        prev_r, prev_z = np.nan, np.nan
+        if from_sensor:
+            prev_r, prev_z = -r0, start_height_m - z0
         elevated_now = False
         base_r = 0.0
         base_z = 0.0
         base_slope = 0.0
         for k in range(n_count):
-            if not present[m, k]:
+            if not (np.isfinite(cand_r[m, k]) and np.isfinite(cand_z[m, k])):
                 continue
-            r, z = rr[m, k], zz[m, k]
+            r, z = cand_r[m, k] - r0, cand_z[m, k] - z0
             dr, rise = r - prev_r, z - prev_z
             # np.maximum(dr, 1e-6): NaN stays NaN
             chord = rise / (dr if (dr >= 1e-6 or np.isnan(dr)) else 1e-6)
@@ -157,7 +169,8 @@ _plateaus_compiled = kernel(_plateaus_loop, error_model='numpy')
 
 
 def ground_under_sensor(cand_z: np.ndarray, training: np.ndarray, line_id: np.ndarray,
-                        line_count: np.ndarray, intercept: np.ndarray) -> float:
+                        line_count: np.ndarray, intercept: np.ndarray,
+                        compiled: bool = True) -> float:
     """Height of the ground under the vehicle (r = 0), shared by all segments (m).
 
     Every segment starts at the sensor, so all segment GPs meet at r = 0 where the ground is
@@ -166,18 +179,80 @@ def ground_under_sensor(cand_z: np.ndarray, training: np.ndarray, line_id: np.nd
     line extrapolated to r = 0) is one estimate, and the median over segments is robust to the
     few whose first line is a car or a wall. Fallbacks: without such a line, the median of the
     training candidates' heights; without training candidates, the median of all candidates;
-    without candidates, 0.
+    without candidates, 0. ``compiled``: the per-segment look-up in numba (as
+    :func:`elevated_plateaus`).
     """
-    rows = np.flatnonzero(training.any(axis=1))
-    if rows.size == 0:
+    any_training, estimates = run(compiled, _first_line_intercepts_compiled,
+                                  _first_line_intercepts_numpy, training, line_id, line_count,
+                                  intercept)
+    if not any_training:
         z = cand_z[np.isfinite(cand_z)]
-        return float(np.median(z)) if z.size else 0.0
+        return _median(z, compiled) if z.size else 0.0
+    if estimates.size:
+        return _median(estimates, compiled)
+    return _median(cand_z[training], compiled)
+
+
+def _median(values: np.ndarray, compiled: bool) -> float:
+    """``float(np.median(values))`` of finite values (one or more); ``compiled``: sorted in
+    numba (np.median's Python costs ~10 us, ~10x the sort of a hundred values)."""
+    median = run(compiled, _median_compiled, _median_numpy, values)
+    return float(np.median(values)) if math.isnan(median) else median
+
+
+def _median_numpy(values):
+    return float(np.median(values))
+
+
+def _median_loop(values):
+    """np.median's value of finite ``values`` (compiled with numba): the middle one of the sorted
+    values, or the two middle ones' (a + b) / 2, as np.median's mean of them. NaN, for np.median
+    itself to decide, when a middle value is zero: np.median's partition may order -0.0 and
+    +0.0 otherwise than a sort, and its mean turns -0.0 into +0.0."""
+    ordered = np.sort(values)
+    half = ordered.size // 2
+    upper = ordered[half]
+    lower = ordered[half - 1] if ordered.size % 2 == 0 else upper
+    if lower == 0.0 or upper == 0.0:
+        return np.nan
+    if ordered.size % 2 == 1:
+        return upper
+    return (lower + upper) / 2.0
+
+
+_median_compiled = kernel(_median_loop)
+
+
+def _first_line_intercepts_numpy(training, line_id, line_count, intercept):
+    """(any training candidate, intercepts of the segments' first training lines that have
+    two or more candidates and a finite intercept, in segment order)."""
+    rows = np.flatnonzero(training.any(axis=1))
     first = np.argmax(training[rows], axis=1)
     ids = line_id[rows, first]
     usable = (line_count[ids] >= 2) & np.isfinite(intercept[ids])
-    if usable.any():
-        return float(np.median(intercept[ids[usable]]))
-    return float(np.median(cand_z[training]))
+    return rows.size > 0, intercept[ids[usable]]
+
+
+def _first_line_intercepts_loop(training, line_id, line_count, intercept):
+    """:func:`_first_line_intercepts_numpy` as one loop (compiled with numba), the same values
+    in the same order; it replaces ~8 numpy calls of 1-4 us each."""
+    m_count, n_count = training.shape
+    estimates = np.empty(m_count)
+    found = 0
+    any_training = False
+    for m in range(m_count):
+        for k in range(n_count):
+            if training[m, k]:
+                any_training = True
+                i = line_id[m, k]
+                if line_count[i] >= 2 and np.isfinite(intercept[i]):
+                    estimates[found] = intercept[i]
+                    found += 1
+                break
+    return any_training, estimates[:found]
+
+
+_first_line_intercepts_compiled = kernel(_first_line_intercepts_loop)
 
 
 def outlier_candidates(loo_residual: np.ndarray, *, above_m: float, below_m: float,
@@ -309,8 +384,8 @@ def _rise_loop(edges, mean, max_slope, span):
 _rise_compiled = kernel(_rise_loop)
 
 
-def one_point_line_slopes(slope: np.ndarray, cand_r: np.ndarray,
-                          cand_z: np.ndarray) -> np.ndarray:
+def one_point_line_slopes(slope: np.ndarray, cand_r: np.ndarray, cand_z: np.ndarray,
+                          compiled: bool = True) -> np.ndarray:
     """``slope`` (M, N) with every one-point line (NaN slope) given |dz/dr| of the chord from
     the previous candidate of its segment.
 
@@ -319,8 +394,15 @@ def one_point_line_slopes(slope: np.ndarray, cand_r: np.ndarray,
     ground (the longest length scale, and no steep-line filter). The chord that ended the
     previous line is the slope the data show there. (The chord to the *next* candidate was
     measured too: it marks the last ground candidate before a crest as steep and cost the
-    crest family 0.009 F1.) A segment's first candidate keeps NaN.
+    crest family 0.009 F1.) A segment's first candidate keeps NaN. ``compiled``: one numba
+    loop (as :func:`elevated_plateaus`).
     """
+    return run(compiled, _chord_slopes_compiled, _chord_slopes_numpy,
+               np.asarray(slope, dtype=np.float64), cand_r, cand_z)
+
+
+def _chord_slopes_numpy(slope, cand_r, cand_z):
+    """The numpy reference of :func:`one_point_line_slopes`."""
     present = np.isfinite(cand_r) & np.isfinite(cand_z)
     col = np.where(present, np.arange(cand_r.shape[1]), -1)
     prev = np.maximum.accumulate(col, axis=1)  # last candidate at or before each bin
@@ -331,3 +413,29 @@ def one_point_line_slopes(slope: np.ndarray, cand_r: np.ndarray,
                        / (cand_r - np.take_along_axis(cand_r, safe, axis=1)))
     chord = np.where((prev >= 0) & present & np.isfinite(chord), chord, np.nan)
     return np.where(np.isnan(slope), chord, slope)
+
+
+def _chord_slopes_loop(slope, cand_r, cand_z):
+    """:func:`_chord_slopes_numpy` one segment at a time (compiled with numba): the same chord
+    of the same values; it replaces ~15 numpy calls (accumulate, take_along_axis, where)."""
+    m_count, n_count = slope.shape
+    out = np.empty((m_count, n_count))
+    for m in range(m_count):
+        prev = -1
+        for k in range(n_count):
+            present = np.isfinite(cand_r[m, k]) and np.isfinite(cand_z[m, k])
+            value = slope[m, k]
+            if np.isnan(value):
+                value = np.nan
+                if present and prev >= 0:
+                    chord = np.abs((cand_z[m, k] - cand_z[m, prev])
+                                   / (cand_r[m, k] - cand_r[m, prev]))
+                    if np.isfinite(chord):
+                        value = chord
+            out[m, k] = value
+            if present:
+                prev = k
+    return out
+
+
+_chord_slopes_compiled = kernel(_chord_slopes_loop, error_model='numpy')

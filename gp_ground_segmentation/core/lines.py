@@ -102,6 +102,15 @@ def extract_lines(cand_r: np.ndarray, cand_z: np.ndarray, density: np.ndarray, *
     ``compiled``: the numba loop when numba imports (the numpy reference otherwise, or if the
     compiled loop fails).
     """
+    args = (cand_r, cand_z, np.asarray(density, dtype=np.float64), float(variance_ratio),
+            float(max_slope), float(max_distance_m), float(max_gap_m), 1.0 / max_density_jump,
+            float(max_density_jump))
+    return LineSegments(*run(compiled, _lines_compiled, _lines_numpy, *args))
+
+
+def _lines_numpy(cand_r, cand_z, density, variance_ratio, max_slope, max_distance_m,
+                 max_gap_m, low_density, high_density):
+    """The numpy reference of :func:`_lines_loop`: the fields of :class:`LineSegments`."""
     m_count, n_count = cand_r.shape
     rows = np.arange(m_count)
     present, rr, zz, r0, z0 = relative_to_first(cand_r, cand_z)
@@ -109,12 +118,9 @@ def extract_lines(cand_r: np.ndarray, cand_z: np.ndarray, density: np.ndarray, *
     # moments (1, r, z, r^2, z^2, r z) of every candidate, 0 where there is none
     rr0, zz0 = np.where(present, rr, 0.0), np.where(present, zz, 0.0)
     moments = np.stack([present.astype(np.float64), rr0, zz0, rr0 * rr0, zz0 * zz0, rr0 * zz0])
-    density = np.asarray(density, dtype=np.float64)
-    args = (present, rr, zz, density, moments, float(variance_ratio), float(max_slope),
-            float(max_distance_m), float(max_gap_m), 1.0 / max_density_jump,
-            float(max_density_jump))
-    line_id, is_critical, slope_before, next_line = run(compiled, _grow_lines_compiled,
-                                                        _grow_lines_numpy, *args)
+    line_id, is_critical, slope_before, next_line = _grow_lines_numpy(
+        present, rr, zz, density, moments, variance_ratio, max_slope, max_distance_m,
+        max_gap_m, low_density, high_density)
 
     # Final fit of every line from its members (bincount over line ids).
     ids = line_id[present]
@@ -137,8 +143,74 @@ def extract_lines(cand_r: np.ndarray, cand_z: np.ndarray, density: np.ndarray, *
 
     slope = np.full((m_count, n_count), np.nan)
     slope[present] = np.abs(beta[ids])
-    return LineSegments(line_id, is_critical, slope, intercept, beta, count.astype(np.intp),
-                        np.stack([r_lo, r_hi], axis=1), slope_before)
+    return (line_id, is_critical, slope, intercept, beta, count.astype(np.intp),
+            np.stack([r_lo, r_hi], axis=1), slope_before)
+
+
+def _lines_loop(cand_r, cand_z, density, variance_ratio, max_slope, max_distance_m,
+                max_gap_m, low_density, high_density):
+    """:func:`_lines_numpy` as scalar loops (compiled with numba): the same values in the same
+    order (the line sums accumulate in ``np.bincount``'s order, row by row), so the same
+    outputs. It replaces the numpy set-up (``relative_to_first``, the moments array) and the
+    final fit (bincounts, ``minimum.at``, gathers): ~30 numpy calls of 1-10 us each."""
+    m_count, n_count = cand_r.shape
+    present = np.empty((m_count, n_count), dtype=np.bool_)
+    rr = np.empty((m_count, n_count))
+    zz = np.empty((m_count, n_count))
+    r0 = np.zeros(m_count)
+    z0 = np.zeros(m_count)
+    for m in range(m_count):
+        for k in range(n_count):
+            present[m, k] = np.isfinite(cand_r[m, k]) and np.isfinite(cand_z[m, k])
+        for k in range(n_count):
+            if present[m, k]:  # relative_to_first: the origin is the first candidate
+                r0[m] = cand_r[m, k]
+                z0[m] = cand_z[m, k]
+                break
+        for k in range(n_count):
+            rr[m, k] = cand_r[m, k] - r0[m]
+            zz[m, k] = cand_z[m, k] - z0[m]
+    line_id, is_critical, slope_before, num_lines = _grow_lines_compiled(
+        present, rr, zz, density, variance_ratio, max_slope, max_distance_m, max_gap_m,
+        low_density, high_density)
+
+    sums = np.zeros((6, num_lines))
+    line_seg = np.zeros(num_lines, dtype=np.intp)
+    r_lo = np.full(num_lines, np.inf)
+    r_hi = np.full(num_lines, -np.inf)
+    for m in range(m_count):
+        for k in range(n_count):
+            if present[m, k]:  # the moments, summed as np.bincount sums them
+                i = line_id[m, k]
+                r, z = rr[m, k], zz[m, k]
+                sums[0, i] += 1.0
+                sums[1, i] += r
+                sums[2, i] += z
+                sums[3, i] += r * r
+                sums[4, i] += z * z
+                sums[5, i] += r * z
+                line_seg[i] = m
+                r_lo[i] = min(r_lo[i], cand_r[m, k])
+                r_hi[i] = max(r_hi[i], cand_r[m, k])
+    intercept = np.empty(num_lines)
+    beta = np.empty(num_lines)
+    count = np.empty(num_lines, dtype=np.intp)
+    r_range = np.empty((num_lines, 2))
+    for i in range(num_lines):
+        alpha_rel, b = _deming_scalar(sums[0, i], sums[1, i], sums[2, i], sums[3, i],
+                                      sums[4, i], sums[5, i], variance_ratio)
+        if not sums[0, i] >= 2:
+            b = np.nan
+        beta[i] = b
+        intercept[i] = alpha_rel + z0[line_seg[i]] - b * r0[line_seg[i]]
+        count[i] = int(sums[0, i])
+        r_range[i, 0] = r_lo[i]
+        r_range[i, 1] = r_hi[i]
+    slope = np.empty((m_count, n_count))
+    for m in range(m_count):
+        for k in range(n_count):
+            slope[m, k] = np.abs(beta[line_id[m, k]]) if present[m, k] else np.nan
+    return (line_id, is_critical, slope, intercept, beta, count, r_range, slope_before)
 
 
 def _grow_lines_numpy(present, rr, zz, density, moments, variance_ratio, max_slope,
@@ -206,9 +278,11 @@ def _deming_scalar(n, s_r, s_z, s_rr, s_zz, s_rz, variance_ratio):
     return mean_z - beta * mean_r, beta
 
 
-def _grow_lines_loop(present, rr, zz, density, moments, variance_ratio, max_slope,
-                     max_distance_m, max_gap_m, low_density, high_density):
-    """:func:`_grow_lines_numpy` as scalar loops (compiled with numba): same outputs."""
+def _grow_lines_loop(present, rr, zz, density, variance_ratio, max_slope, max_distance_m,
+                     max_gap_m, low_density, high_density):
+    """:func:`_grow_lines_numpy` as scalar loops (compiled with numba): same outputs. The
+    moments of a candidate, (1, r, z, r^2, z^2, r z) or 0 where there is none, are made here
+    as the reference's ``moments`` array holds them."""
     # np.empty and fill loops rather than np.full: they compile faster
     m_count, n_count = present.shape
     sums = np.zeros((6, m_count))
@@ -226,6 +300,9 @@ def _grow_lines_loop(present, rr, zz, density, moments, variance_ratio, max_slop
             slope_before[m, k] = np.nan
             line_id[m, k] = -1
     joined = np.zeros(6)
+    moment = np.zeros(6)
+    line_alpha = np.full(m_count, np.nan)
+    line_beta = np.full(m_count, np.nan)
     next_line = 0
     for k in range(n_count):
         column_has = False
@@ -236,32 +313,43 @@ def _grow_lines_loop(present, rr, zz, density, moments, variance_ratio, max_slop
         for m in range(m_count):
             has = present[m, k]
             n = sums[0, m]
+            r, z = rr[m, k], zz[m, k]
+            if has:
+                moment[0], moment[1], moment[2] = 1.0, r, z
+                moment[3], moment[4], moment[5] = r * r, z * z, r * z
+            else:
+                for j in range(6):
+                    moment[j] = 0.0
             critical = False
             if has and n > 0:
-                alpha, beta = _deming_scalar(sums[0, m], sums[1, m], sums[2, m], sums[3, m],
-                                             sums[4, m], sums[5, m], variance_ratio)
+                # the current line's fit (used from 2 points on) is the joined fit made when
+                # its last candidate joined: the same sums, so no second Deming fit
+                alpha, beta = line_alpha[m], line_beta[m]
                 if n >= 2:
                     slope_before[m, k] = beta
-                r, z, rho = rr[m, k], zz[m, k], density[m, k]
+                rho = density[m, k]
                 gap = r - last_r[m] > max_gap_m
                 ratio = rho / last_rho[m]
                 jump = ratio > high_density or ratio < low_density
                 far = n >= 2 and (np.abs(z - alpha - beta * r) / np.sqrt(1.0 + beta * beta)
                                   > max_distance_m)
                 for j in range(6):
-                    joined[j] = sums[j, m] + moments[j, m, k]
-                beta_new = _deming_scalar(joined[0], joined[1], joined[2], joined[3],
-                                          joined[4], joined[5], variance_ratio)[1]
+                    joined[j] = sums[j, m] + moment[j]
+                alpha_new, beta_new = _deming_scalar(joined[0], joined[1], joined[2],
+                                                     joined[3], joined[4], joined[5],
+                                                     variance_ratio)
                 steep = np.abs(beta_new) > max_slope
                 critical = gap or jump or far or steep
+                # read as the current fit only once it joined (n >= 2)
+                line_alpha[m], line_beta[m] = alpha_new, beta_new
             if (has and not n > 0) or critical:
                 current_line[m] = next_line
                 next_line += 1
                 for j in range(6):
-                    sums[j, m] = 0.0 + moments[j, m, k]
+                    sums[j, m] = 0.0 + moment[j]
             else:
                 for j in range(6):
-                    sums[j, m] = sums[j, m] + moments[j, m, k]
+                    sums[j, m] = sums[j, m] + moment[j]
             if has:
                 line_id[m, k] = current_line[m]
                 last_r[m] = rr[m, k]
@@ -270,7 +358,8 @@ def _grow_lines_loop(present, rr, zz, density, moments, variance_ratio, max_slop
     return line_id, is_critical, slope_before, next_line
 
 
-_grow_lines_compiled = None
-if AVAILABLE:  # the loop calls the compiled scalar fit
+_lines_compiled = None
+if AVAILABLE:  # the loops call the compiled scalar fit and growing loop
     _deming_scalar = kernel(_deming_scalar, error_model='numpy')
     _grow_lines_compiled = kernel(_grow_lines_loop, error_model='numpy')
+    _lines_compiled = kernel(_lines_loop, error_model='numpy')

@@ -15,6 +15,7 @@ Failures are injected by monkeypatching ``np.linalg.cholesky`` and
 """
 
 import itertools
+import time
 import warnings
 
 import numpy as np
@@ -464,3 +465,21 @@ def test_failed_warm_up_switches_the_segmenter_to_numpy(ramp_points, monkeypatch
     assert seg.segment(ramp_points).ground_mask.any()
     numpy_seg = GroundSegmenter(backend='numpy')
     numpy_seg.warm_up()  # nothing to compile: never fails
+
+
+@pytest.mark.parametrize('gp_load_s, waits', [(0.0, True), (None, False)])
+def test_warm_up_waits_for_background_stages_only_when_the_cache_was_filled(gp_load_s, waits,
+                                                                           monkeypatch):
+    """A GP step that loads fast (cache filled) -> wait for the background stages to load too;
+    one that took longer than _GP_CACHE_LOAD_MAX_S (compiled: cache empty) -> no wait, since
+    they are compiling and frames take their numpy twins meanwhile."""
+    from gp_ground_segmentation.core import compiled, gp_compiled, segmenter
+    if not compiled.AVAILABLE:
+        pytest.skip('numba not installed')
+    slow = segmenter._GP_CACHE_LOAD_MAX_S + 0.05
+    monkeypatch.setattr(gp_compiled, 'warm_up',
+                        lambda: time.sleep(slow if gp_load_s is None else gp_load_s))
+    calls = []
+    monkeypatch.setattr(compiled, 'wait', lambda timeout_s=None: calls.append(timeout_s))
+    GroundSegmenter().warm_up()
+    assert (calls == [segmenter._BACKGROUND_WAIT_S]) is waits and (calls == []) is not waits

@@ -85,6 +85,10 @@ _blas = None  # threadpoolctl controller, made on first use (after scipy has loa
 # warm_up() waits this long (s) for the background compilations: loading them from numba's
 # cache takes ~0.1 s; a first compilation (~4 s on 2 cores) goes on while frames use numpy
 _BACKGROUND_WAIT_S = 0.5
+# The GP step loads from numba's cache in ~0.2 s (0.4 s on a loaded machine) and compiles in
+# 2-4 s: when it took longer than this (s), the cache was empty, the background stages are
+# compiling too, and waiting _BACKGROUND_WAIT_S for them would only delay the first frame
+_GP_CACHE_LOAD_MAX_S = 1.0
 
 
 def _single_threaded_blas():
@@ -461,17 +465,21 @@ class GroundSegmenter:
         plateau state machine, GP batch padding, outlier pass, length factors at the bin
         edges, cross-segment rise, label pass, structure selection and look-ups, surface offsets)
         compiled in the background (core/compiled.py; up to _BACKGROUND_WAIT_S is waited for
-        them, enough to load them from the cache). See gp_compiled.py for where the cache lives.
+        them, enough to load them from the cache, unless the GP step took longer than
+        _GP_CACHE_LOAD_MAX_S: then the cache was empty and they are compiling, which frames need
+        not wait for). See gp_compiled.py for where the cache lives.
 
         On failure this segmenter switches to numpy and the error is raised for the caller to
         report; segmenting still works.
         """
         if self._backend == 'numba':
+            start = time.perf_counter()
             try:
                 gp_compiled.warm_up()
             except Exception:
                 self._backend = 'numpy'
                 raise
+            cache_was_filled = time.perf_counter() - start < _GP_CACHE_LOAD_MAX_S
             for dtype in (np.float32, np.float64):  # both input precisions of these passes
                 xyz = np.ones((3, 2), dtype=dtype)
                 for cloud in (xyz.T.copy(), np.ones((2, 4), dtype)[:, :3]):  # (N, 3), (N, 4)
@@ -500,8 +508,10 @@ class GroundSegmenter:
             compiled.run(True, _fill_rows_to_edges_compiled, _fill_rows_to_edges,
                          np.ones((2, 2)), grid.has_candidate, gp.segments)
             # These stages compile in the background (core/compiled.py); loading them from
-            # numba's cache takes ~0.1 s, so wait that long, not the ~4 s of a first compile.
-            compiled.wait(_BACKGROUND_WAIT_S)
+            # numba's cache takes ~0.1 s, so wait that long, not the ~4 s of a first compile
+            # (and not at all when the GP's compile showed the cache empty).
+            if cache_was_filled:
+                compiled.wait(_BACKGROUND_WAIT_S)
 
     @property
     def hyperparameters(self) -> Hyperparameters:

@@ -468,8 +468,8 @@ def test_failed_warm_up_switches_the_segmenter_to_numpy(ramp_points, monkeypatch
 
 
 @pytest.mark.parametrize('gp_load_s, waits', [(0.0, True), (None, False)])
-def test_warm_up_waits_for_background_stages_only_when_the_cache_was_filled(gp_load_s, waits,
-                                                                           monkeypatch):
+def test_warm_up_waits_for_background_stages_only_when_the_cache_was_filled(
+        gp_load_s, waits, monkeypatch):
     """A GP step that loads fast (cache filled) -> wait for the background stages to load too;
     one that took longer than _GP_CACHE_LOAD_MAX_S (compiled: cache empty) -> no wait, since
     they are compiling and frames take their numpy twins meanwhile."""

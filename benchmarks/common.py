@@ -129,13 +129,11 @@ def _missing(path: Path) -> bool:
 
 def load_labeled_kitti(data_dir: Path = DATA_DIR) -> Optional[Dataset]:
     """The SemanticKITTI-labelled scan with its truth (vegetation non-ground)."""
-    from gp_ground_segmentation.tools.io import read_kitti_bin, read_semantickitti_labels
     bin_path, label_path = data_dir / LABELED_BIN, data_dir / LABELED_LABEL
     if _missing(bin_path) or _missing(label_path):
         return None
-    pts = np.ascontiguousarray(read_kitti_bin(bin_path), dtype=np.float32)
-    labels = read_semantickitti_labels(label_path, expected_points=len(pts))
-    truth, evaluated = ground_truth_from_labels(labels)
+    pts, classes = _read_labeled_pair(bin_path, label_path)
+    truth, evaluated = ground_truth_from_labels(classes)
     frame = Frame('semantickitti_000000', pts, True, truth, evaluated, KITTI_SENSOR_HEIGHT_M)
     return Dataset('kitti_labeled', [frame], 'SemanticKITTI scan, labels (ground '
                    '40/44/48/49/60/72; 0/1 ignored; 70 non-ground)', 'real')
@@ -205,7 +203,8 @@ def load_family(family: str, seeds) -> Optional[Dataset]:
     frames, group = [], ''
     for seed in seeds:
         member = synthetic.family_scene(family, seed)
-        scan = synthetic.family_scan(family, seed)
+        # family_scan's body, on the scene already made (building it twice costs its checks)
+        scan = synthetic.simulate_scan(member.scene, seed=seed, **member.scan_kwargs)
         # Intensity is not physically modelled (see scenes.synthetic): flagged as absent so that
         # intensity-based steps (Patchwork++'s RNR) are not driven by made-up values.
         frames.append(Frame(f'{family}_{seed}', np.ascontiguousarray(scan.points), False,

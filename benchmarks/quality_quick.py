@@ -31,7 +31,6 @@ held-out score reported.
 from __future__ import annotations
 
 import argparse
-import ast
 import itertools
 import sys
 from pathlib import Path
@@ -80,11 +79,14 @@ def run_patchworkpp(units) -> dict:
     return out
 
 
+def _metrics(value) -> dict:
+    """The metrics of a per-frame entry: run_gp's (metrics, result) or run_patchworkpp's."""
+    return value[0] if isinstance(value, tuple) else value
+
+
 def unit_f1(units, per_frame: dict) -> dict:
     """{unit: pooled F1} from per-frame metrics (dict values may be (metrics, extra))."""
-    def metrics(v):
-        return v[0] if isinstance(v, tuple) else v
-    return {name: common.pool([metrics(per_frame[f.name]) for f in ds.frames])['f1']
+    return {name: common.pool([_metrics(per_frame[f.name]) for f in ds.frames])['f1']
             for name, _, ds in units}
 
 
@@ -106,8 +108,8 @@ def report(units, ours, base, pwpp, ours_label, base_label) -> str:
         if is_real:
             for f in ds.frames:
                 add(f.name, common.fmt(len(f)), base[f.name][0], ours[f.name][0], pwpp[f.name])
-        b, o, p = (common.pool([(r[f.name][0] if isinstance(r[f.name], tuple) else r[f.name])
-                                for f in ds.frames]) for r in (base, ours, pwpp))
+        b, o, p = (common.pool([_metrics(r[f.name]) for f in ds.frames])
+                   for r in (base, ours, pwpp))
         pooled[name] = (b, o, p)
         add(f'**{name}** pooled ({len(ds.frames)} frames)', '-', b, o, p)
     groups = (('real SemanticKITTI (4 scans)', ('spvnas', 'kitti00')),
@@ -116,8 +118,7 @@ def report(units, ours, base, pwpp, ours_label, base_label) -> str:
         frames = [f for n, _, ds in units if n in names for f in ds.frames]
         if not frames:
             continue
-        b, o, p = (common.pool([(r[f.name][0] if isinstance(r[f.name], tuple) else r[f.name])
-                                for f in frames]) for r in (base, ours, pwpp))
+        b, o, p = (common.pool([_metrics(r[f.name]) for f in frames]) for r in (base, ours, pwpp))
         add(f'**{label}** pooled', '-', b, o, p)
     return common.markdown_table(headers, rows)
 
@@ -164,14 +165,6 @@ def cross_validate(units, grid: dict, base_params: SegmenterParams) -> str:
     return table + '\n\nF1 per unit and value:\n\n' + per_value
 
 
-def _parse_settings(items) -> dict:
-    out = {}
-    for item in items or ():
-        key, _, value = item.partition('=')
-        out[key] = ast.literal_eval(value)
-    return out
-
-
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     ap.add_argument('--set', nargs='*', default=[], help='name=value over the defaults (ours)')
@@ -181,8 +174,8 @@ def main(argv=None):
     ap.add_argument('--no-write', action='store_true', help='print only, keep RESULTS.md')
     args = ap.parse_args(argv)
     units = load_units()
-    ours_params = SegmenterParams().replace(**_parse_settings(args.set))
-    base_params = SegmenterParams().replace(**_parse_settings(args.baseline))
+    ours_params = SegmenterParams().replace(**common.parse_param_values(args.set))
+    base_params = SegmenterParams().replace(**common.parse_param_values(args.baseline))
     ours = run_gp(ours_params, units)
     base = run_gp(base_params, units)
     pwpp = run_patchworkpp(units)
@@ -196,7 +189,8 @@ def main(argv=None):
         grid = {}
         for item in args.cv:
             name, _, values = item.partition('=')
-            grid[name] = [ast.literal_eval(v) for v in values.split(',')]
+            grid[name] = [common.parse_param_values([f'{name}={v}'])[name]
+                          for v in values.split(',')]
         text += ['', f'Leave-one-scene-out choice of {", ".join(f"`{n}`" for n in grid)} '
                  '(searched jointly):', '', cross_validate(units, grid, ours_params)]
     out = '\n'.join(text) + '\n'

@@ -7,6 +7,8 @@ set before any rclpy context is initialised, hence at import time here.
 """
 
 import os
+import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
@@ -20,6 +22,31 @@ os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / 'shared' / 'data'
 BAG = DATA / 'kitti00_velodyne_points'
+NODE_MODULE = 'gp_ground_segmentation.ros.node'
+
+
+def module_env(extra=None) -> dict:
+    """Environment of a child ``python -m``: unbuffered output (lines arrive as printed) and
+    this checkout first on PYTHONPATH, plus ``extra``."""
+    env = dict(os.environ, PYTHONUNBUFFERED='1', **(extra or {}))
+    env['PYTHONPATH'] = os.pathsep.join([str(REPO), env.get('PYTHONPATH', '')])
+    return env
+
+
+def start_module(module: str, *args, env_extra=None, stderr=subprocess.STDOUT, **kwargs):
+    """``python -m module args`` as a text Popen (stdout piped, stderr into it by default)."""
+    return subprocess.Popen([sys.executable, '-m', module, *args], stdout=subprocess.PIPE,
+                            stderr=stderr, text=True, env=module_env(env_extra), **kwargs)
+
+
+def wait_listening(proc) -> list:
+    """Lines of a started node's output up to its 'listening on' line (it is up)."""
+    lines = []
+    for line in proc.stdout:
+        lines.append(line)
+        if 'listening on' in line:
+            return lines
+    raise AssertionError(f'node did not start: {"".join(lines)}')
 
 
 @pytest.fixture(scope='session')

@@ -8,7 +8,6 @@ byte, in input order, equal to the pipeline's own split), the output bag reopens
 left behind, and one-line errors with exit status 2 for corrupt/truncated/empty/wrong bags.
 """
 
-import os
 import shutil
 import subprocess
 import sys
@@ -16,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import assert_output_like_input
+from conftest import assert_output_like_input, module_env
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / 'shared' / 'data'
@@ -377,10 +376,9 @@ def test_missing_topic_lists_the_bag_topics(tmp_path, capsys):
 
 def test_subprocess_truncated_bag_no_traceback(tmp_path):
     bad, _ = _make_bad('truncated_mcap', tmp_path)
-    env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get('PYTHONPATH', ''))
     proc = subprocess.run([sys.executable, '-m', 'gp_ground_segmentation.tools.cli', 'replay',
                            str(bad), str(tmp_path / 'out')], capture_output=True, text=True,
-                          env=env, timeout=120)
+                          env=module_env(), timeout=120)
     assert proc.returncode == 2
     assert 'Traceback' not in proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1

@@ -8,17 +8,15 @@ effect), latest-wins dropping, parameter files at start-up, bad input that does 
 and main() as a process (clean Ctrl-C, failure naming a bad YAML key).
 """
 
-import os
 import signal
-import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import REPO, assert_output_like_input, status_values, wait_for
+from conftest import (NODE_MODULE, REPO, assert_output_like_input, start_module,
+                      status_values, wait_for, wait_listening)
 
 from gp_ground_segmentation import GroundSegmenter, SegmenterParams
 from gp_ground_segmentation.ros.cloud import make_cloud, point_rows
@@ -300,10 +298,7 @@ def test_bad_params_file_fails_at_startup_naming_the_key(tmp_path, body, words):
 
 
 def _run_node(args, env_extra=None):
-    env = dict(os.environ, PYTHONUNBUFFERED='1', **(env_extra or {}))
-    env['PYTHONPATH'] = os.pathsep.join([str(REPO), env.get('PYTHONPATH', '')])
-    return subprocess.Popen([sys.executable, '-m', 'gp_ground_segmentation.ros.node', *args],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+    return start_module(NODE_MODULE, *args, env_extra=env_extra)
 
 
 def test_main_bad_yaml_exits_with_message(tmp_path):
@@ -317,12 +312,8 @@ def test_main_bad_yaml_exits_with_message(tmp_path):
 
 def test_main_clean_shutdown_on_sigint():
     proc = _run_node(['--ros-args', '-r', 'points:=/velodyne_points'])
-    lines = []
     try:
-        for line in proc.stdout:
-            lines.append(line)
-            if 'listening on' in line:
-                break
+        lines = wait_listening(proc)
         assert any("'/velodyne_points'" in ln for ln in lines), lines
         proc.send_signal(signal.SIGINT)
         out, _ = proc.communicate(timeout=30)

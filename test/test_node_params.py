@@ -18,12 +18,11 @@ traceback).
 """
 
 import math
-import os
 import subprocess
 import sys
 
 import pytest
-from conftest import REPO, RosHarness, wait_for
+from conftest import NODE_MODULE, RosHarness, module_env, wait_for
 from rclpy.parameter import Parameter, parameter_value_to_python
 
 from gp_ground_segmentation import SegmenterParams
@@ -260,11 +259,9 @@ def test_bad_params_file_node_constructor(tmp_path, context, label, body, words)
 
 def test_bad_params_file_process_exits_1_with_one_line(tmp_path):
     path = _write(tmp_path, '    line_max_gap_m: 80\n')
-    env = dict(os.environ, PYTHONUNBUFFERED='1')
-    env['PYTHONPATH'] = os.pathsep.join([str(REPO), env.get('PYTHONPATH', '')])
-    proc = subprocess.run([sys.executable, '-m', 'gp_ground_segmentation.ros.node', '--ros-args',
+    proc = subprocess.run([sys.executable, '-m', NODE_MODULE, '--ros-args',
                            '--params-file', str(path)], capture_output=True, text=True,
-                          env=env, timeout=60)
+                          env=module_env(), timeout=60)
     out = proc.stdout + proc.stderr
     assert proc.returncode == 1, out
     assert 'Traceback' not in out

@@ -4,25 +4,19 @@ namespace), QoS overrides per endpoint, and the launch file."""
 
 import os
 import signal
-import subprocess
-import sys
 import time
 
 import pytest
 import yaml
 
-from conftest import REPO
+from conftest import NODE_MODULE, REPO, start_module, wait_listening
 
 LAUNCH_FILE = REPO / 'launch' / 'ground_segmentation.launch.py'
 PARAMS_YAML = REPO / 'config' / 'params.yaml'
 
 
 def _start(args, **kwargs):
-    env = dict(os.environ, PYTHONUNBUFFERED='1')
-    env['PYTHONPATH'] = os.pathsep.join([str(REPO), env.get('PYTHONPATH', '')])
-    return subprocess.Popen([sys.executable, '-m', 'gp_ground_segmentation.ros.node', *args],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                            env=env, **kwargs)
+    return start_module(NODE_MODULE, *args, **kwargs)
 
 
 def _run(args, timeout=60):
@@ -31,21 +25,12 @@ def _run(args, timeout=60):
     return proc.returncode, out
 
 
-def _wait_listening(proc):
-    lines = []
-    for line in proc.stdout:
-        lines.append(line)
-        if 'listening on' in line:
-            return lines
-    raise AssertionError(f'node did not start: {"".join(lines)}')
-
-
 @pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM])
 def test_two_signals_to_the_process_group_exit_0_quietly(sig):
     # A terminal's Ctrl-C goes to the whole process group, and ros2 launch forwards another.
     proc = _start(['--ros-args', '-r', 'points:=/gp_test_points'], start_new_session=True)
     try:
-        _wait_listening(proc)
+        wait_listening(proc)
         os.killpg(proc.pid, sig)
         os.killpg(proc.pid, sig)
         out, _ = proc.communicate(timeout=30)
@@ -61,7 +46,7 @@ def test_signals_during_shutdown_are_ignored():
     # Signals keep coming while the node is being destroyed (worker joined): still exit 0.
     proc = _start(['--ros-args', '-r', 'points:=/gp_test_points'], start_new_session=True)
     try:
-        _wait_listening(proc)
+        wait_listening(proc)
         for _ in range(5):
             os.killpg(proc.pid, signal.SIGINT)
             time.sleep(0.02)

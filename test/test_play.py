@@ -3,14 +3,13 @@
 
 import os
 import subprocess
-import sys
 import time
 import uuid
 
 import numpy as np
 import pytest
 
-from conftest import REPO, wait_for
+from conftest import start_module, wait_for
 from gp_ground_segmentation.tools.cli import main
 
 FRAMES = 5
@@ -32,10 +31,7 @@ def pcd_dir(tmp_path):
 
 
 def _tool(*args):
-    env = dict(os.environ, PYTHONUNBUFFERED='1')
-    env['PYTHONPATH'] = os.pathsep.join([str(REPO), env.get('PYTHONPATH', '')])
-    return subprocess.Popen([sys.executable, '-m', 'gp_ground_segmentation.tools.cli', *args],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    return start_module('gp_ground_segmentation.tools.cli', *args, stderr=subprocess.PIPE)
 
 
 def test_play_feeds_the_live_node_with_restamp_and_clock(pcd_dir, ros_harness):

@@ -32,7 +32,7 @@ import copy
 import numpy as np
 
 __all__ = ['CloudFormatError', 'POINTFIELD_DTYPES', 'fields_dtype', 'read_cloud', 'cloud_xyz',
-           'xyz_dtype', 'point_rows', 'subset_cloud', 'make_cloud']
+           'xyz_dtype', 'point_rows', 'subset_cloud', 'make_cloud', 'with_float32_field']
 
 
 class CloudFormatError(ValueError):
@@ -50,6 +50,7 @@ POINTFIELD_DTYPES = {
     7: np.dtype(np.float32),  # FLOAT32
     8: np.dtype(np.float64),  # FLOAT64
 }
+FLOAT32 = 7  # sensor_msgs/PointField.FLOAT32
 _DATATYPE_NAMES = {1: 'INT8', 2: 'UINT8', 3: 'INT16', 4: 'UINT16', 5: 'INT32', 6: 'UINT32',
                    7: 'FLOAT32', 8: 'FLOAT64'}
 # numpy (kind, itemsize) -> PointField datatype, for make_cloud.
@@ -386,7 +387,7 @@ def with_float32_field(msg, name, values):
     out.height = 1
     out.width = n
     out.fields = _copy_fields(msg.fields) + [
-        _field_class(type(msg))(name=name, offset=step, datatype=7, count=1)]
+        _field_class(type(msg))(name=name, offset=step, datatype=FLOAT32, count=1)]
     out.is_bigendian = bool(msg.is_bigendian)
     out.point_step = step + 4
     out.row_step = n * (step + 4)

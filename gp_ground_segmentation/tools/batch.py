@@ -183,6 +183,7 @@ def run_batch(inputs: Sequence[str], out_dir, engine, *, topic: Optional[str] = 
     summary of what finished and is re-raised.
     """
     from .bag import Progress, load_params
+    from .engine import peak_rss_mb
     # tasks get absolute paths: a remote worker's working directory is not ours
     out_dir = Path(out_dir).absolute()
     params_file = None if params_file is None else os.path.abspath(params_file)
@@ -263,18 +264,13 @@ def run_batch(inputs: Sequence[str], out_dir, engine, *, topic: Optional[str] = 
         ordered = [rows.get(p, {'input': p, 'output': str(out_dir / n), 'status': 'interrupted',
                                 'error': 'interrupted before it finished'})
                    for p, n in zip(inputs, names)]
-        rss = {} if interrupted else engine.run_on_workers(_peak_rss)
+        rss = {} if interrupted else engine.run_on_workers(peak_rss_mb)
         result = BatchResult(ordered, engine.description, time.perf_counter() - t0,
                              sum(r.get('frames', 0) or 0 for r in ordered if r['status'] == 'ok'),
                              rss, interrupted)
         write_summary(out_dir, result, {'params_file': params_file, 'topic': topic,
                                         'storage': storage})
     return result
-
-
-def _peak_rss() -> float:
-    from .engine import peak_rss_mb
-    return peak_rss_mb()
 
 
 def print_result(result: BatchResult, out_dir: Path, stream=None) -> None:

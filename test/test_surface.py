@@ -5,8 +5,7 @@ import numpy as np
 import pytest
 
 from gp_ground_segmentation import GroundSegmenter, SegmenterParams
-from gp_ground_segmentation.core.compiled import AVAILABLE as COMPILED
-from conftest import compiled_ready
+from conftest import compiled_and_reference
 from scenes import synthetic
 
 
@@ -44,31 +43,43 @@ def _interpolated(surface, values, points):
 def test_ground_offsets_bins_to_edges_clipped_and_filled():
     from gp_ground_segmentation.core.surface import ground_offsets
     # segment 0: bin 0 holds 0.01, 0.03 and an obstacle point at 5 m (clipped to 0.02 + 0.3);
-    # bin 1 is empty; segment 1 has no ground point at all
-    residual = np.array([0.01, 0.03, 5.0, 0.02, 0.02])
-    segment = np.array([0, 0, 0, 0, 0])
-    bins = np.array([0, 0, 0, 2, 2])
-    out = ground_offsets(residual, segment, bins, 2, 3, noise_std=0.1)
-    median = 0.02
-    bin0 = (0.01 + 0.03 + median + 0.3) / 3
-    np.testing.assert_allclose(out[0], [bin0, bin0, 0.02, 0.02])
-    np.testing.assert_allclose(out[1], median)
+    # bin 1 is empty; segment 1 has no ground point at all; the last point is not ground
+    z_hat = np.array([1.0, 1.0, 1.0, -1.0, -1.0, 0.0])
+    z = z_hat + np.array([0.01, 0.03, 5.0, 0.02, 0.02, 7.0])
+    ground = np.array([True, True, True, True, True, False])
+    segment = np.array([0, 0, 0, 0, 0, 1])
+    bins = np.array([0, 0, 0, 2, 2, 1])
+    for compiled in (True, False):
+        out = ground_offsets(z, z_hat, ground, segment, bins, 2, 3, noise_std=0.1,
+                             compiled=compiled)
+        median = 0.02
+        bin0 = (0.01 + 0.03 + median + 0.3) / 3
+        np.testing.assert_allclose(out[0], [bin0, bin0, 0.02, 0.02])
+        np.testing.assert_allclose(out[1], median)
+    assert np.array_equal(ground_offsets(z, z_hat, ground & False, segment, bins, 2, 3, 0.1),
+                          np.zeros((2, 4)))  # no ground point: no offset
 
 
-@pytest.mark.parametrize('seed', range(4))
+def _offset_inputs(rng, size, m, n, z_dtype=np.float64):
+    """Heights scattered about z_hat with outliers on both sides (clipped), many ties (z on a
+    1 cm lattice), empty bins and segments, and a third of the points not ground."""
+    z_hat = rng.normal(0.0, 0.5, size)
+    z = (z_hat + rng.normal(0.0, 0.05, size)
+         + rng.choice([0.0, 3.0, -2.0], size, p=[.8, .1, .1])).round(2).astype(z_dtype)
+    ground = rng.random(size) < 0.67
+    segment = rng.integers(0, max(1, m - 2), size).astype(np.int32)
+    bins = rng.integers(0, max(1, n - 1), size).astype(np.int32)
+    return z, z_hat, ground, segment, bins
+
+
+@pytest.mark.parametrize('seed', range(6))
 def test_ground_offsets_compiled_equals_the_numpy_reference(seed):
     from gp_ground_segmentation.core import surface
-    if not COMPILED:
-        pytest.skip('numba not installed')
     rng = np.random.default_rng(seed)
-    m, n, size = 7, 5, 400
-    # scatter with outliers on both sides (clipped) and empty bins and segments
-    residual = rng.normal(0.0, 0.05, size) + rng.choice([0.0, 3.0, -2.0], size, p=[.8, .1, .1])
-    segment = rng.integers(0, m - 2, size).astype(np.int32)
-    bins = rng.integers(0, n - 1, size).astype(np.int32)
-    compiled_ready(surface.ground_offsets, residual, segment, bins, m, n, 0.05)
-    compiled = surface.ground_offsets(residual, segment, bins, m, n, 0.05)
-    reference = surface.ground_offsets(residual, segment, bins, m, n, 0.05, compiled=False)
+    # odd and even numbers of ground points (the median's two cases), float32 and float64 z
+    size = (1, 2, 3, 400, 401, 5000)[seed]
+    args = _offset_inputs(rng, size, 7, 5, (np.float32, np.float64)[seed % 2]) + (7, 5, 0.05)
+    compiled, reference = compiled_and_reference(surface.ground_offsets, *args)
     assert np.array_equal(compiled, reference)  # same sums in the same order: bit-identical
 
 
@@ -76,15 +87,36 @@ def test_ground_offsets_compiled_equals_the_numpy_reference_on_a_scan(ramp):
     from gp_ground_segmentation.core import surface
     _, points, result = ramp
     grid_args = result.ground_surface.num_segments, result.ground_surface.num_bins
-    # the residuals the surface uses: ground points, z - z_hat, in their grid cells
-    ground = result.ground_mask
-    residual = points[ground, 2] - result.ground_height[ground]
-    seg = surface.segment_of(points[ground, 0], points[ground, 1], grid_args[0])
-    bins = np.arange(residual.size, dtype=np.int32) % grid_args[1]
-    compiled_ready(surface.ground_offsets, residual, seg, bins, *grid_args, 0.03)
-    compiled = surface.ground_offsets(residual, seg, bins, *grid_args, 0.03)
-    reference = surface.ground_offsets(residual, seg, bins, *grid_args, 0.03, compiled=False)
-    assert residual.size > 10000 and np.array_equal(compiled, reference)
+    # the labels the surface uses, in made-up grid cells
+    seg = surface.segment_of(points[:, 0], points[:, 1], grid_args[0])
+    bins = np.arange(points.shape[0], dtype=np.int32) % grid_args[1]
+    args = (points[:, 2].copy(), result.ground_height, result.ground_mask, seg, bins,
+            *grid_args, 0.03)
+    compiled, reference = compiled_and_reference(surface.ground_offsets, *args)
+    assert result.ground_mask.sum() > 10000 and np.array_equal(compiled, reference)
+
+
+def test_ground_offsets_leave_non_finite_residuals_to_the_reference():
+    from gp_ground_segmentation.core import surface
+    args = list(_offset_inputs(np.random.default_rng(7), 300, 4, 4))
+    args[0][np.flatnonzero(args[2])[:3]] = np.nan  # three ground points without a height
+    compiled, reference = compiled_and_reference(surface.ground_offsets, *args, 4, 4, 0.05)
+    assert np.array_equal(compiled, reference, equal_nan=True)
+
+
+@pytest.mark.parametrize('seed', range(3))
+def test_median_by_bucketing_is_numpys_median(seed):
+    from gp_ground_segmentation.core import surface
+    rng = np.random.default_rng(seed)
+    for size in list(range(1, 150)) + [1000, 1001, 70000]:
+        # ties (a coarse lattice), far outliers (a first round that keeps almost everything),
+        # sorted, reversed and constant inputs
+        values = rng.integers(-5, 6, size) * 0.1 if seed == 0 else rng.normal(0, 0.05, size)
+        if seed == 2:
+            values[rng.integers(0, size, max(1, size // 100))] = 1e6 * rng.normal(size=1)
+        for case in (values, np.sort(values), np.sort(values)[::-1].copy(), values * 0):
+            assert surface._median_of(case) == np.median(case), (size, case)
+    assert surface._median_of(np.array([-1e308, 1e308, 0.0])) == 0.0  # max - min overflows
 
 
 def test_height_at_is_vectorised_and_nan_outside_the_grid(ramp):

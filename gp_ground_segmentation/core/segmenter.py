@@ -246,12 +246,13 @@ def _ground_at_bin_edges(model: _GroundModel, edges: np.ndarray, need_std: bool)
     return mean, std, d_star, k_star
 
 
-def _ground_surface(model: _GroundModel, grid: RadialGrid, edges, mean, std, point_z, ground,
-                    ground_height, valid_index, k_star, pose) -> GroundSurface:
+def _ground_surface(model: _GroundModel, grid: RadialGrid, edges, mean, std, z, ground, z_hat,
+                    k_star, pose, compiled_offsets: bool) -> GroundSurface:
     """The frame's GroundSurface; ``std`` None: its z_std is computed when first read.
+    ``z``, ``ground`` and ``z_hat`` are the valid points' heights, labels and ground heights.
 
-    The deferred computations keep the model, the edges, the (N,) result arrays and the points'
-    grid cells alive, not the rest of the per-point grid.
+    The deferred computations keep the model, the edges, those arrays and the points' grid
+    cells alive, not the rest of the per-point grid.
     """
     point_segment, point_bin = grid.point_segment, grid.point_bin  # over the valid points
     m_count, n_bins = grid.num_segments, grid.num_bins
@@ -265,11 +266,8 @@ def _ground_surface(model: _GroundModel, grid: RadialGrid, edges, mean, std, poi
         return std
 
     def compute_offset():
-        on_ground = ground[valid_index]
-        residual = (point_z[valid_index][on_ground].astype(np.float64)
-                    - ground_height[valid_index][on_ground])
-        return ground_offsets(residual, point_segment[on_ground], point_bin[on_ground], m_count,
-                              n_bins, model.theta[2])
+        return ground_offsets(z, z_hat, ground, point_segment, point_bin, m_count, n_bins,
+                              model.theta[2], compiled=compiled_offsets)
 
     return GroundSurface(grid.segment_r_min, grid.bin_width, grid.count.sum(axis=1) > 0, mean,
                          model.training.any(axis=1), std,
@@ -486,19 +484,20 @@ class GroundSegmenter:
                     compiled.run(True, _valid_columns_compiled, _valid_columns, cloud)
                 grid = build_grid(*xyz, 2, 2)
                 _label_points(np.zeros((2, 3)), np.zeros((2, 3)), grid, xyz[2], True)
+                # z_hat in the points' precision, as _label_points gives it
+                ground_offsets(xyz[2], xyz[2] * 0, np.ones(2, bool), grid.point_segment,
+                               grid.point_bin, 2, 2, 0.1)
                 # a ground point with a column point right above it reaches the compiled part
                 vertical_structure_mask(xyz[0], xyz[1] * 0, np.array([0.0, 0.5], dtype),
                                         np.zeros(2, dtype), np.array([True, False]),
                                         cell_m=0.03, cell_deg=0.25, rise_m=0.2,
                                         max_height_m=0.7, step_m=0.05)
-            # the line growing loop, the plateau state machine and the surface's ground
-            # offsets (float64 only)
+            # the line growing loop and the plateau state machine (float64 only)
             lines = extract_lines(grid.candidate_r, grid.candidate_z, grid.density,
                                   variance_ratio=1.0, max_slope=1.0, max_distance_m=1.0,
                                   max_gap_m=1.0, max_density_jump=2.0)
             additions.elevated_plateaus(grid.candidate_r, grid.candidate_z, lines.slope_before,
                                         step_up_m=0.3, max_slope=1.0, max_gap_m=1.0)
-            ground_offsets(np.zeros(1), np.zeros(1, np.int32), np.zeros(1, np.int32), 1, 1, 0.1)
             # the GP batch's padding, the outlier pass, the length factors at the bin edges, the
             # threshold's rise
             additions.cross_segment_rise(np.ones((2, 3)), np.ones((2, 3)), 1.0)
@@ -796,7 +795,7 @@ class GroundSegmenter:
                 np.where(grid.has_candidate, theta[1] * model.length_factor, np.nan), edges,
                 mean_full, std_full, threshold, model.gp, model.solution, d_star, feet)
         surface = _ground_surface(model, grid, edges, mean_full, std_full if need_std else None,
-                                  xyz[:, 2], ground, height, valid_index, k_star,
-                                  p.sensor_pose)
+                                  z, ground_v, z_hat, k_star, p.sensor_pose,
+                                  self._backend == 'numba')
         return SegmentationResult(ground, valid, height, self._theta, timings, stats, extra,
                                   surface, xyz[:, 2])

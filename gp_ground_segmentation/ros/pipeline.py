@@ -86,10 +86,8 @@ def frame_timings(out: FrameOutput) -> dict:
 def surface_cloud(header, surface, msg_type=None):
     """PointCloud2 (x, y, z, z_std FLOAT32, ``header`` copied) of a GroundSurface's supported
     prediction points."""
-    values = surface.points(supported_only=True)
-    packed = np.empty(values.shape[0], dtype=[(name, '<f4') for name in SURFACE_FIELDS])
-    for i, name in enumerate(SURFACE_FIELDS):
-        packed[name] = values[:, i]
+    values = surface.points(supported_only=True)  # (K, 4) float32, C order: x, y, z, z_std
+    packed = values.view([(name, np.float32) for name in SURFACE_FIELDS]).reshape(-1)
     return make_cloud(header, packed, msg_type)
 
 

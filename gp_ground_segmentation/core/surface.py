@@ -109,30 +109,43 @@ class GroundSurface:
         return bin_edges(self._r_min, self._width, self.num_bins)
 
     @cached_property
+    def _segment_centre(self) -> np.ndarray:
+        """(M, 1) azimuth of each segment's centre (rad, in (-pi, pi))."""
+        m = self.num_segments
+        return (-np.pi + (np.arange(m) + 0.5) * (2.0 * np.pi / m))[:, None]
+
+    @cached_property
     def azimuth(self) -> np.ndarray:
         """Azimuth of each prediction point: its segment's centre (rad, in (-pi, pi))."""
-        m = self.num_segments
-        centre = -np.pi + (np.arange(m) + 0.5) * (2.0 * np.pi / m)
-        return np.broadcast_to(centre[:, None], self._mean.shape)
+        return np.broadcast_to(self._segment_centre, self._mean.shape)
 
     @cached_property
     def x(self) -> np.ndarray:
         """x of each prediction point in the input frame (m)."""
         if self._pose.has_rotation:
             return self._tilted_xyz[0]
-        return self.r * np.cos(self.azimuth) + self._pose.x
+        return self._level_x + self._pose.x
 
     @cached_property
     def y(self) -> np.ndarray:
         """y of each prediction point in the input frame (m)."""
         if self._pose.has_rotation:
             return self._tilted_xyz[1]
-        return self.r * np.sin(self.azimuth) + self._pose.y
+        return self._level_y + self._pose.y
+
+    @cached_property
+    def _level_x(self) -> np.ndarray:
+        # the cosine of the M centres, not of all M x (N + 1) points: the same numbers
+        return self.r * np.cos(self._segment_centre)
+
+    @cached_property
+    def _level_y(self) -> np.ndarray:
+        return self.r * np.sin(self._segment_centre)
 
     @cached_property
     def _tilted_xyz(self):
         """x, y, z of the prediction points in a tilted input frame: p_C = R^T p_L + t."""
-        p_l = (self.r * np.cos(self.azimuth), self.r * np.sin(self.azimuth), self._level_z)
+        p_l = (self._level_x, self._level_y, self._level_z)
         rot, t = self._pose.rotation(), (self._pose.x, self._pose.y, self._pose.z)
         return tuple(sum(rot[j, i] * p_l[j] for j in range(3)) + t[i] for i in range(3))
 

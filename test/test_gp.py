@@ -510,6 +510,37 @@ def test_first_iteration_equals_scipy_on_gp_problems(seed):
         assert _assert_same_first_iteration(fun, np.log(theta0), bounds, 2) == 2
 
 
+@pytest.mark.skipif(not gp_compiled.AVAILABLE, reason='numba not installed')
+@pytest.mark.parametrize('seed', range(4))
+def test_resolve_with_known_segments_equals_full_solve(seed, monkeypatch):
+    """A with_noise copy solved at a theta its parent has solved reuses the parent's segments
+    whose noise is unchanged (gp_compiled.resolve_batched): the solution, J and gradient equal
+    a fresh FrameGP's full solve bit for bit, and segments with new noise do change."""
+    r, z, d, mask = random_problem(110 + seed, m_count=6, n_count=12)
+    rng = np.random.default_rng(seed)
+    theta = random_theta(rng)
+    parent = FrameGP(r, z, d, mask, backend='numba')
+    parent.solve(theta)
+    noise = np.zeros(mask.shape)
+    noise[np.argmax(mask.sum(axis=1)), :] = 4.0  # the fullest row's candidates: more noise
+    calls = []
+    real = gp_compiled.resolve_batched
+
+    def counting(*args):
+        calls.append(int(args[8].sum()))
+        return real(*args)
+
+    monkeypatch.setattr(gp_compiled, 'resolve_batched', counting)
+    reused = parent.with_noise(noise).solve(theta)
+    fresh = FrameGP(r, z, d, mask, noise_var=noise, backend='numba', mean=parent.mean)
+    full = fresh.solve(theta)
+    assert calls == [1]  # the copy did reuse all but the one noisier row
+    for name in ('alpha', 'a_inv', 'gradient', 'logdets'):
+        np.testing.assert_array_equal(getattr(reused, name), getattr(full, name))
+    assert reused.lml == full.lml
+    assert not np.array_equal(reused.alpha, parent.solve(theta).alpha)  # that row did change
+
+
 def test_cholesky_failure_falls_back_without_raising():
     # eight candidates at the same r and d: K is rank one, sigma_n at a 1e-9 m bound
     r = np.full((2, 8), 5.0)

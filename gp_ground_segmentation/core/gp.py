@@ -76,6 +76,11 @@ def resolve_backend(backend: str) -> str:
     return backend
 
 
+# solutions each FrameGP keeps (the start and the last point of a theta search: whichever
+# wins is solved again, and the robust pass re-solves at it)
+_CACHED_SOLUTIONS = 2
+
+
 class _BudgetExhausted(Exception):
     """Raised inside the objective to stop L-BFGS-B exactly at the evaluation cap."""
 
@@ -301,6 +306,7 @@ class GPSolution:
     jitter: float  # diagonal jitter that had to be added (m^2), 0 if none
     kernel: Optional[np.ndarray]  # (S, n, n) K at theta (padded slots 0); None when compiled
     gradient: Optional[np.ndarray] = None  # (3,) dJ/dlog(theta) when the solver gave it
+    logdets: Optional[np.ndarray] = None  # (S,) log|A| of each segment when compiled
 
 
 @dataclass(frozen=True)
@@ -463,7 +469,8 @@ class FrameGP:
         self.compiled_error = None  # why the numba kernel failed, if it did (then numpy)
         self.cholesky_fallbacks = 0  # jittered retries of this object and those it came from
         self.factorisations = 0  # uncached solves of this object (the unit of fitting cost)
-        self._cache = None
+        self._cache = []  # [(theta bytes, GPSolution)]: the last _CACHED_SOLUTIONS solves
+        self._known = None  # ([(theta bytes, compiled solution)], changed (S,)): with_noise
 
     def _pair_geometry(self):
         """(q, prefactor) (S, n, n) of the numpy path, 0 on padded pairs; computed once.
@@ -492,8 +499,15 @@ class FrameGP:
         keep, grid_index = self._grid_slots()  # the grid candidates' slots; padding gets 0
         other.noise_var = np.where(self.is_anchor, anchor_var, 0.0)
         other.noise_var[keep] = np.asarray(noise_var, dtype=np.float64).reshape(-1)[grid_index]
-        other._cache = None  # cholesky_fallbacks carries on: it counts the whole chain
+        other._cache = []  # cholesky_fallbacks carries on: it counts the whole chain
         other.factorisations = 0
+        # this object's cached solutions stay valid for the copy's segments whose noise is
+        # unchanged: a solve at their theta recomputes only the others (bit for bit the same)
+        compiled_solutions = [(key, sol) for key, sol in self._cache if sol.logdets is not None]
+        other._known = None
+        if compiled_solutions:
+            other._known = (compiled_solutions,
+                            np.any(other.noise_var != self.noise_var, axis=1))
         return other
 
     def to_grid(self, slot_values, fill) -> np.ndarray:
@@ -531,13 +545,14 @@ class FrameGP:
         """
         theta = np.asarray(theta, dtype=np.float64)
         key = theta.tobytes()
-        if self._cache is not None and self._cache[0] == key:
-            return self._cache[1]  # L-BFGS-B re-evaluates its start and end points
+        for cached_key, cached in self._cache:
+            if cached_key == key:  # L-BFGS-B re-evaluates its start and end points
+                return cached
         self.factorisations += 1
         sol = self._solve_compiled(theta) if self.backend == 'numba' else None
         if sol is None:
             sol = self._solve_numpy(theta)
-        self._cache = (key, sol)
+        self._cache = self._cache[1 - _CACHED_SOLUTIONS:] + [(key, sol)]
         return sol
 
     def _lml(self, logdet, alpha):
@@ -546,16 +561,24 @@ class FrameGP:
 
     def _solve_compiled(self, theta) -> Optional[GPSolution]:
         """The whole step in numba; None when a matrix is not PD or numba fails (then numpy)."""
+        args = (self.r, self.d, self.z, self.noise_var, self.counts,
+                *(float(t) for t in theta))
+        known_solutions, changed = self._known if self._known is not None else ([], None)
+        known = next((sol for key, sol in known_solutions if key == theta.tobytes()), None)
         try:
-            ok, logdets, alpha, a_inv, gradient = gp_compiled.solve_batched(
-                self.r, self.d, self.z, self.noise_var, self.counts, *(float(t) for t in theta))
+            if known is not None:
+                ok, logdets, alpha, a_inv, gradient = gp_compiled.resolve_batched(
+                    *args, changed, known.logdets, known.alpha, known.a_inv)
+            else:
+                ok, logdets, alpha, a_inv, gradient = gp_compiled.solve_batched(*args)
         except Exception as exc:  # noqa: BLE001 - numba compile/runtime failure
             self.backend, self.compiled_error = 'numpy', str(exc)  # numpy from now on
             return None
         if not ok.all():
             return None
         logdet = float(logdets.sum())
-        return GPSolution(theta, alpha, a_inv, self._lml(logdet, alpha), 0.0, None, gradient)
+        return GPSolution(theta, alpha, a_inv, self._lml(logdet, alpha), 0.0, None, gradient,
+                          logdets)
 
     def _solve_numpy(self, theta) -> GPSolution:
         """The numpy reference (and fallback): stacked factorisation of the padded batch."""
@@ -639,21 +662,21 @@ class FrameGP:
             return -lml, -grad
 
         log_bounds = np.log(np.asarray(bounds, dtype=np.float64))
-        if max_evaluations <= 2 and np.all(np.isfinite(log_bounds)):
-            # the warm-started frames: scipy's first iteration in closed form (same points)
-            info['iterations'] = _lbfgsb_first_iteration(objective, np.log(theta0), log_bounds,
-                                                         max_evaluations)
-        else:
-            try:
+        try:
+            if max_evaluations <= 2 and np.all(np.isfinite(log_bounds)):
+                # the warm-started frames: scipy's first iteration in closed form (same points)
+                info['iterations'] = _lbfgsb_first_iteration(objective, np.log(theta0),
+                                                             log_bounds, max_evaluations)
+            else:
                 res = minimize(objective, np.log(theta0), jac=True, method='L-BFGS-B',
                                bounds=log_bounds, options={'maxfun': int(max_evaluations),
                                                            'maxiter': int(max_evaluations)})
                 info['iterations'] = int(res.nit)
-            except _BudgetExhausted:
-                pass
-            except _NUMERICAL_ERRORS + (RuntimeError,):  # RuntimeError: scipy's own failures
-                info['failed'] = True
-                return theta0, info
+        except _BudgetExhausted:
+            pass
+        except _NUMERICAL_ERRORS + (RuntimeError,):  # RuntimeError: scipy's own failures
+            info['failed'] = True
+            return theta0, info
         if not values or not np.isfinite(min(values)):
             info['failed'] = True  # never move to an undefined theta: keep the last good one
             return theta0, info

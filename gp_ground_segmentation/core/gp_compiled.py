@@ -37,6 +37,20 @@ def _solve_batched(r, d, z, noise_var, counts, sigma_f, gain, sigma_n):
     when Cholesky meets a non-positive pivot; then that segment's outputs are meaningless and
     the caller falls back to jittered numpy.
     """
+    return resolve_batched(r, d, z, noise_var, counts, sigma_f, gain, sigma_n,
+                           np.ones(r.shape[0], dtype=np.bool_), np.zeros(0), np.zeros((0, 0)),
+                           np.zeros((0, 0, 0)))  # every segment changed: nothing known
+
+
+def _resolve_batched(r, d, z, noise_var, counts, sigma_f, gain, sigma_n, changed,
+                     known_logdet, known_alpha, known_a_inv):
+    """:func:`_solve_batched` when the factorisation of the segments not ``changed`` (S,) is
+    known: their log|A|, alpha and A^-1 at this theta (from a solution of the same data but
+    another noise in the changed segments) are copied instead of recomputed. Every segment's
+    K and gradient terms are still formed, in the same order, so the outputs are those of
+    :func:`_solve_batched` bit for bit; the Cholesky factorisation and inverse (the O(n^3)
+    part) run only for the changed segments.
+    """
     s_count, n = r.shape
     logdet = np.zeros(s_count)
     alpha = np.zeros((s_count, n))
@@ -69,7 +83,11 @@ def _solve_batched(r, d, z, noise_var, counts, sigma_f, gain, sigma_n):
                 q[j, i] = qij
                 k[i, j] = kij
                 k[j, i] = kij
-        for j in range(m):  # Cholesky of A = K + diag(noise), lower
+        if not changed[s]:  # known: A^-1, alpha and log|A| of this segment at this theta
+            ainv[:, :] = known_a_inv[s]
+            alpha[s, :] = known_alpha[s]
+            logdet[s] = known_logdet[s]
+        for j in range(m if changed[s] else 0):  # Cholesky of A = K + diag(noise), lower
             v = k[j, j] + sn2 + noise_var[s, j]
             for t in range(j):
                 v -= lower[j, t] * lower[j, t]
@@ -86,21 +104,21 @@ def _solve_batched(r, d, z, noise_var, counts, sigma_f, gain, sigma_n):
                 lower[i, j] = v / ljj
         if not ok[s]:
             continue
-        for i in range(m):  # L^-1, lower
+        for i in range(m if changed[s] else 0):  # L^-1, lower
             inv_lower[i, i] = 1.0 / lower[i, i]
             for j in range(i):
                 v = 0.0
                 for t in range(j, i):
                     v -= lower[i, t] * inv_lower[t, j]
                 inv_lower[i, j] = v / lower[i, i]
-        for i in range(m):  # A^-1 = L^-T L^-1
+        for i in range(m if changed[s] else 0):  # A^-1 = L^-T L^-1
             for j in range(i + 1):
                 v = 0.0
                 for t in range(i, m):
                     v += inv_lower[t, i] * inv_lower[t, j]
                 ainv[i, j] = v
                 ainv[j, i] = v
-        for i in range(m):
+        for i in range(m if changed[s] else 0):
             v = 0.0
             for j in range(m):
                 v += ainv[i, j] * z[s, j]
@@ -176,11 +194,13 @@ def _predict_batched(r, d, counts, alpha, a_inv, r_star, d_star, sigma_f, gain, 
 
 
 if AVAILABLE:
+    resolve_batched = kernel(_resolve_batched)  # before solve: it calls it
     solve_batched = kernel(_solve_batched)
     std_batched = kernel(_std_batched)  # before predict: it calls it
     predict_batched = kernel(_predict_batched)
 else:  # pragma: no cover - the numpy backend is used instead; these are never called
     solve_batched, std_batched, predict_batched = _solve_batched, _std_batched, _predict_batched
+    resolve_batched = _resolve_batched
 
 
 def warm_up() -> None:
@@ -192,8 +212,10 @@ def warm_up() -> None:
     if AVAILABLE:
         one = np.ones((1, 2))
         counts = np.array([2], dtype=np.intp)
-        _, _, alpha, a_inv, _ = solve_batched(np.array([[0.0, 1.0]]), one, one, one * 0.0,
-                                              counts, 1.0, 1.0, 0.1)
+        _, logdet, alpha, a_inv, _ = solve_batched(np.array([[0.0, 1.0]]), one, one,
+                                                   one * 0.0, counts, 1.0, 1.0, 0.1)
+        resolve_batched(np.array([[0.0, 1.0]]), one, one, one * 0.0, counts, 1.0, 1.0, 0.1,
+                        np.zeros(1, dtype=np.bool_), logdet, alpha, a_inv)
         _, _, k_star = predict_batched(np.array([[0.0, 1.0]]), one, counts, alpha, a_inv, one,
                                        one, 1.0, 1.0, True)
         std_batched(counts, a_inv, k_star, 1.0)

@@ -600,8 +600,8 @@ def test_compiled_step_reports_non_pd_matrices():
     z = np.ones((2, 3))
     counts = np.array([3, 2])
     noise = np.array([[0.0, 0.0, 0.0], [-2.0, 0.0, 0.0]])  # negative variance: not PD
-    ok, logdet, alpha, a_inv, _ = gp_compiled.solve_batched(r, d, z, noise, counts,
-                                                            1.0, 1.0, 0.1)
+    ok, logdet, alpha, a_inv, *_ = gp_compiled.solve_batched(r, d, z, noise, counts,
+                                                             1.0, 1.0, 0.1)
     assert ok.tolist() == [True, False]
     k = np.exp(-np.subtract.outer(r[0], r[0]) ** 2 / 2.0) + 0.01 * np.eye(3)
     assert logdet[0] == pytest.approx(np.linalg.slogdet(k)[1], rel=1e-12)

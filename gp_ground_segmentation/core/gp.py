@@ -307,6 +307,7 @@ class GPSolution:
     kernel: Optional[np.ndarray]  # (S, n, n) K at theta (padded slots 0); None when compiled
     gradient: Optional[np.ndarray] = None  # (3,) dJ/dlog(theta) when the solver gave it
     logdets: Optional[np.ndarray] = None  # (S,) log|A| of each segment when compiled
+    pair_terms: tuple = ()  # compiled: (K, q) (S, n, n), see gp_compiled._solve_batched
 
 
 @dataclass(frozen=True)
@@ -567,10 +568,11 @@ class FrameGP:
         known = next((sol for key, sol in known_solutions if key == theta.tobytes()), None)
         try:
             if known is not None:
-                ok, logdets, alpha, a_inv, gradient = gp_compiled.resolve_batched(
-                    *args, changed, known.logdets, known.alpha, known.a_inv)
+                ok, logdets, alpha, a_inv, gradient, *pair_terms = gp_compiled.resolve_batched(
+                    *args, changed, known.logdets, known.alpha, known.a_inv, *known.pair_terms)
             else:
-                ok, logdets, alpha, a_inv, gradient = gp_compiled.solve_batched(*args)
+                ok, logdets, alpha, a_inv, gradient, *pair_terms = gp_compiled.solve_batched(
+                    *args)
         except Exception as exc:  # noqa: BLE001 - numba compile/runtime failure
             self.backend, self.compiled_error = 'numpy', str(exc)  # numpy from now on
             return None
@@ -578,7 +580,7 @@ class FrameGP:
             return None
         logdet = float(logdets.sum())
         return GPSolution(theta, alpha, a_inv, self._lml(logdet, alpha), 0.0, None, gradient,
-                          logdets)
+                          logdets, tuple(pair_terms))
 
     def _solve_numpy(self, theta) -> GPSolution:
         """The numpy reference (and fallback): stacked factorisation of the padded batch."""

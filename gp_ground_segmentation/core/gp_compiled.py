@@ -31,33 +31,38 @@ def _solve_batched(r, d, z, noise_var, counts, sigma_f, gain, sigma_n):
     """Factorise A_s = K_s + diag(sigma_n^2 + noise_var) of every segment s at theta.
 
     r, d, z, noise_var: (S, n) padded training data, the first ``counts[s]`` slots of row s
-    valid. Returns (ok (S,), logdet (S,), alpha (S, n), a_inv (S, n, n), gradient (3,)) where
-    ``gradient`` is dJ/dlog(sigma_f, a, sigma_n) summed over the segments:
-    1/2 tr((alpha alpha^T - A^-1) dA/dlog theta). K is not kept. ``ok[s]`` is False
+    valid. Returns (ok (S,), logdet (S,), alpha (S, n), a_inv (S, n, n), gradient (3,),
+    kernel (S, n, n), q (S, n, n)) where ``gradient`` is dJ/dlog(sigma_f, a, sigma_n) summed
+    over the segments: 1/2 tr((alpha alpha^T - A^-1) dA/dlog theta); ``kernel`` and ``q`` hold
+    K and (r_i - r_j)^2 / (d_i^2 + d_j^2) of each segment in their first counts[s] rows and
+    columns (the rest is not written) for :func:`_resolve_batched`. ``ok[s]`` is False
     when Cholesky meets a non-positive pivot; then that segment's outputs are meaningless and
     the caller falls back to jittered numpy.
     """
+    nothing = np.zeros((0, 0, 0))
     return resolve_batched(r, d, z, noise_var, counts, sigma_f, gain, sigma_n,
                            np.ones(r.shape[0], dtype=np.bool_), np.zeros(0), np.zeros((0, 0)),
-                           np.zeros((0, 0, 0)))  # every segment changed: nothing known
+                           nothing, nothing, nothing)  # every segment changed: nothing known
 
 
 def _resolve_batched(r, d, z, noise_var, counts, sigma_f, gain, sigma_n, changed,
-                     known_logdet, known_alpha, known_a_inv):
-    """:func:`_solve_batched` when the factorisation of the segments not ``changed`` (S,) is
-    known: their log|A|, alpha and A^-1 at this theta (from a solution of the same data but
-    another noise in the changed segments) are copied instead of recomputed. Every segment's
-    K and gradient terms are still formed, in the same order, so the outputs are those of
-    :func:`_solve_batched` bit for bit; the Cholesky factorisation and inverse (the O(n^3)
-    part) run only for the changed segments.
+                     known_logdet, known_alpha, known_a_inv, known_kernel, known_q):
+    """:func:`_solve_batched` when a solution at this theta of the same data with another
+    noise in the ``changed`` (S,) segments is known: its K and q (independent of the noise)
+    are used as they are and returned, and the log|A|, alpha and A^-1 of the unchanged
+    segments are copied. The gradient terms are still summed over every segment in the same
+    order, so the outputs are those of :func:`_solve_batched` bit for bit; the kernel and the
+    Cholesky factorisation and inverse (the O(n^3) part) run only where needed. With empty
+    ``known_kernel`` and ``known_q`` (0, 0, 0), K and q are computed.
     """
     s_count, n = r.shape
     logdet = np.zeros(s_count)
     alpha = np.zeros((s_count, n))
     a_inv = np.zeros((s_count, n, n))
     ok = np.ones(s_count, dtype=np.bool_)
-    k = np.zeros((n, n))  # K and q of the current segment: scratch, not kept
-    q = np.zeros((n, n))
+    kernel_known = known_kernel.shape[0] > 0
+    kernel = known_kernel if kernel_known else np.empty((s_count, n, n))
+    q_all = known_q if kernel_known else np.empty((s_count, n, n))
     lower = np.zeros((n, n))
     inv_lower = np.zeros((n, n))
     sf2 = sigma_f * sigma_f
@@ -71,7 +76,9 @@ def _resolve_batched(r, d, z, noise_var, counts, sigma_f, gain, sigma_n, changed
         ainv = a_inv[s]
         for i in range(m, n):
             ainv[i, i] = 1.0  # padded slots: identity rows, as in the numpy reference
-        for i in range(m):  # K and q = (r_i - r_j)^2 / (d_i^2 + d_j^2), symmetric
+        k = kernel[s]
+        q = q_all[s]
+        for i in range(0 if kernel_known else m):  # K, q = (r_i - r_j)^2 / (d_i^2 + d_j^2)
             di = d[s, i]
             for j in range(i + 1):
                 dj = d[s, j]
@@ -131,7 +138,7 @@ def _resolve_batched(r, d, z, noise_var, counts, sigma_f, gain, sigma_n, changed
                 g_gain += wk * q[i, j]
             g_sn += ai * ai - ainv[i, i]
     gradient = np.array([g_sf, g_gain * inv_gain2, g_sn * sn2])
-    return ok, logdet, alpha, a_inv, gradient
+    return ok, logdet, alpha, a_inv, gradient, kernel, q_all
 
 
 def _std_batched(counts, a_inv, k_star, sigma_f):
@@ -212,10 +219,10 @@ def warm_up() -> None:
     if AVAILABLE:
         one = np.ones((1, 2))
         counts = np.array([2], dtype=np.intp)
-        _, logdet, alpha, a_inv, _ = solve_batched(np.array([[0.0, 1.0]]), one, one,
-                                                   one * 0.0, counts, 1.0, 1.0, 0.1)
+        _, logdet, alpha, a_inv, _, k, q = solve_batched(np.array([[0.0, 1.0]]), one, one,
+                                                         one * 0.0, counts, 1.0, 1.0, 0.1)
         resolve_batched(np.array([[0.0, 1.0]]), one, one, one * 0.0, counts, 1.0, 1.0, 0.1,
-                        np.zeros(1, dtype=np.bool_), logdet, alpha, a_inv)
+                        np.zeros(1, dtype=np.bool_), logdet, alpha, a_inv, k, q)
         _, _, k_star = predict_batched(np.array([[0.0, 1.0]]), one, counts, alpha, a_inv, one,
                                        one, 1.0, 1.0, True)
         std_batched(counts, a_inv, k_star, 1.0)

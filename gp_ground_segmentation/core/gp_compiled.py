@@ -91,8 +91,10 @@ def _resolve_batched(r, d, z, noise_var, counts, sigma_f, gain, sigma_n, changed
                 k[i, j] = kij
                 k[j, i] = kij
         if not changed[s]:  # known: A^-1, alpha and log|A| of this segment at this theta
-            ainv[:, :] = known_a_inv[s]
-            alpha[s, :] = known_alpha[s]
+            for i in range(n):  # element loops: slice copies cost numba seconds to compile
+                alpha[s, i] = known_alpha[s, i]
+                for j in range(n):
+                    ainv[i, j] = known_a_inv[s, i, j]
             logdet[s] = known_logdet[s]
         for j in range(m if changed[s] else 0):  # Cholesky of A = K + diag(noise), lower
             v = k[j, j] + sn2 + noise_var[s, j]
@@ -200,14 +202,16 @@ def _predict_batched(r, d, counts, alpha, a_inv, r_star, d_star, sigma_f, gain, 
     return mean, std, k_star
 
 
+# solve_batched stays Python: one compiled function for both entry points (compiling a
+# second one that only calls the first doubled numba's work on a new install)
+solve_batched = _solve_batched
 if AVAILABLE:
-    resolve_batched = kernel(_resolve_batched)  # before solve: it calls it
-    solve_batched = kernel(_solve_batched)
+    resolve_batched = kernel(_resolve_batched)
     std_batched = kernel(_std_batched)  # before predict: it calls it
     predict_batched = kernel(_predict_batched)
 else:  # pragma: no cover - the numpy backend is used instead; these are never called
-    solve_batched, std_batched, predict_batched = _solve_batched, _std_batched, _predict_batched
     resolve_batched = _resolve_batched
+    std_batched, predict_batched = _std_batched, _predict_batched
 
 
 def warm_up() -> None:

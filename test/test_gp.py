@@ -11,11 +11,12 @@ import math
 
 import numpy as np
 import pytest
+from scipy.optimize import minimize
 from scipy.stats import multivariate_normal
 
 from gp_ground_segmentation.core import gp_compiled
-from gp_ground_segmentation.core.gp import (FrameGP, GroundAnchor, length_scale_factors,
-                                            paciorek_kernel)
+from gp_ground_segmentation.core.gp import (FrameGP, GroundAnchor, _lbfgsb_first_iteration,
+                                            length_scale_factors, paciorek_kernel)
 
 BOUNDS = [(0.01, 20.0), (0.05, 200.0), (0.005, 2.0)]
 
@@ -430,6 +431,117 @@ def test_fit_respects_evaluation_cap():
     assert all(worst[cap] <= cap for cap in worst), worst
 
 
+class _Stop(Exception):
+    """Raised by a recording objective at its evaluation cap (as FrameGP.fit does)."""
+
+
+def _recorded_first_iteration(fun, x0, bounds, cap, use_scipy):
+    """(points evaluated, iterations) of scipy's L-BFGS-B capped at ``cap`` evaluations, or of
+    gp._lbfgsb_first_iteration on the same problem."""
+    points = []
+
+    def objective(x):
+        if len(points) >= cap:
+            raise _Stop
+        points.append(np.array(x, dtype=np.float64))
+        return fun(x)
+
+    if not use_scipy:
+        return points, _lbfgsb_first_iteration(objective, x0, bounds, cap)
+    try:
+        res = minimize(objective, x0, jac=True, method='L-BFGS-B', bounds=bounds,
+                       options={'maxfun': cap, 'maxiter': cap})
+        return points, int(res.nit)
+    except _Stop:
+        return points, 0
+
+
+def _assert_same_first_iteration(fun, x0, bounds, cap):
+    ref_points, ref_iterations = _recorded_first_iteration(fun, x0, bounds, cap, True)
+    points, iterations = _recorded_first_iteration(fun, x0, bounds, cap, False)
+    assert len(points) == len(ref_points)
+    for p, q in zip(points, ref_points):
+        np.testing.assert_array_equal(p, q)  # bit for bit
+    assert iterations == ref_iterations
+    return len(points)
+
+
+def test_first_iteration_equals_scipy_on_random_problems():
+    """The closed-form first L-BFGS-B iteration and scipy's: the same points to the bit, and
+    the same iteration count, on smooth random problems in random boxes (some variables at a
+    bound, some bounds equal, steps that hit one, two or all bounds, gradients from 1e-6 up)."""
+    rng = np.random.default_rng(5)
+    counts = {1: 0, 2: 0}
+    for _ in range(1500):
+        a = rng.normal(size=(3, 3))
+        hessian = a @ a.T + rng.uniform(0.01, 3.0) * np.eye(3)
+        linear = rng.normal(size=3) * rng.choice([1e-6, 0.01, 1.0, 10.0])
+        scale = 10 ** rng.uniform(-3, 4)
+
+        def fun(x, hessian=hessian, linear=linear, scale=scale):
+            return (scale * (0.5 * x @ hessian @ x + linear @ x + np.sin(x).sum()),
+                    scale * (hessian @ x + linear + np.cos(x)))
+
+        x0 = rng.normal(size=3)
+        half_width = np.log(rng.choice([1.05, 1.5, 3.0]))
+        lower = x0 - half_width * rng.choice([1.0, 0.0, 2.0], size=3, p=[0.8, 0.1, 0.1])
+        upper = x0 + half_width * rng.choice([1.0, 0.0, 0.5], size=3, p=[0.8, 0.1, 0.1])
+        cap = int(rng.choice([1, 2]))
+        counts[_assert_same_first_iteration(fun, x0, np.stack([lower, upper], 1), cap)] += 1
+    assert counts[2] > 700 and counts[1] > 700  # both outcomes were exercised (741, 759)
+
+
+@pytest.mark.parametrize('seed', range(6))
+def test_first_iteration_equals_scipy_on_gp_problems(seed):
+    """The same on the GP's own objective: -J and -dJ/dlog(theta) in the trust region of
+    x/÷ 1.5 around random starts, as the segmenter's warm-started frames use it."""
+    r, z, d, mask = random_problem(90 + seed, m_count=5, n_count=12)
+    gp = FrameGP(r, z, d, mask)
+    rng = np.random.default_rng(seed)
+
+    def fun(x):
+        lml, grad = gp.lml_and_gradient(x)
+        return -lml, -grad
+
+    for _ in range(10):
+        theta0 = random_theta(rng)
+        bounds = np.log([(max(lo, t / 1.5), min(hi, t * 1.5))
+                         for t, (lo, hi) in zip(theta0, BOUNDS)])
+        assert _assert_same_first_iteration(fun, np.log(theta0), bounds, 2) == 2
+
+
+@pytest.mark.skipif(not gp_compiled.AVAILABLE, reason='numba not installed')
+@pytest.mark.parametrize('seed', range(4))
+def test_resolve_with_known_segments_equals_full_solve(seed, monkeypatch):
+    """A with_noise copy solved at a theta its parent has solved reuses the parent's segments
+    whose noise is unchanged (gp_compiled.resolve_batched): the solution, J and gradient equal
+    a fresh FrameGP's full solve bit for bit, and segments with new noise do change."""
+    r, z, d, mask = random_problem(110 + seed, m_count=6, n_count=12)
+    rng = np.random.default_rng(seed)
+    theta = random_theta(rng)
+    parent = FrameGP(r, z, d, mask, backend='numba')
+    parent.solve(theta)
+    noise = np.zeros(mask.shape)
+    noise[np.argmax(mask.sum(axis=1)), :] = 4.0  # the fullest row's candidates: more noise
+    calls = []
+    real = gp_compiled.resolve_batched
+
+    def counting(*args):
+        if args[9].size:  # a re-solve with known segments (solve_batched passes none)
+            calls.append(int(args[8].sum()))
+        return real(*args)
+
+    monkeypatch.setattr(gp_compiled, 'resolve_batched', counting)
+    reused = parent.with_noise(noise).solve(theta)
+    fresh = FrameGP(r, z, d, mask, noise_var=noise, backend='numba', mean=parent.mean)
+    full = fresh.solve(theta)
+    assert calls == [1]  # the copy did reuse all but the one noisier row
+    for name in ('alpha', 'a_inv', 'gradient', 'logdets'):
+        np.testing.assert_array_equal(getattr(reused, name), getattr(full, name))
+    assert reused.lml == full.lml
+    assert not np.array_equal(reused.alpha, parent.solve(theta).alpha)  # that row did change
+
+
 def test_cholesky_failure_falls_back_without_raising():
     # eight candidates at the same r and d: K is rank one, sigma_n at a 1e-9 m bound
     r = np.full((2, 8), 5.0)
@@ -489,8 +601,8 @@ def test_compiled_step_reports_non_pd_matrices():
     z = np.ones((2, 3))
     counts = np.array([3, 2])
     noise = np.array([[0.0, 0.0, 0.0], [-2.0, 0.0, 0.0]])  # negative variance: not PD
-    ok, logdet, alpha, a_inv, _ = gp_compiled.solve_batched(r, d, z, noise, counts,
-                                                            1.0, 1.0, 0.1)
+    ok, logdet, alpha, a_inv, *_ = gp_compiled.solve_batched(r, d, z, noise, counts,
+                                                             1.0, 1.0, 0.1)
     assert ok.tolist() == [True, False]
     k = np.exp(-np.subtract.outer(r[0], r[0]) ** 2 / 2.0) + 0.01 * np.eye(3)
     assert logdet[0] == pytest.approx(np.linalg.slogdet(k)[1], rel=1e-12)

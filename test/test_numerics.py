@@ -296,7 +296,7 @@ def _fail_first_cholesky_calls(monkeypatch, count):
         return real(a)
     # the compiled kernel (if used) reports every matrix as not PD: numpy's path runs
     monkeypatch.setattr(gp_compiled, 'solve_batched',
-                        lambda r, *args: (np.zeros(r.shape[0], dtype=bool),) + (None,) * 4)
+                        lambda r, *args: (np.zeros(r.shape[0], dtype=bool),) + (None,) * 6)
     monkeypatch.setattr(np.linalg, 'cholesky', flaky)
     return state
 

@@ -48,6 +48,7 @@ from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
+from scipy.linalg import blas
 from scipy.optimize import minimize
 
 from . import gp_compiled
@@ -75,8 +76,201 @@ def resolve_backend(backend: str) -> str:
     return backend
 
 
+# solutions each FrameGP keeps (the start and the last point of a theta search: whichever
+# wins is solved again, and the robust pass re-solves at it)
+_CACHED_SOLUTIONS = 2
+
+
 class _BudgetExhausted(Exception):
     """Raised inside the objective to stop L-BFGS-B exactly at the evaluation cap."""
+
+
+# scipy's L-BFGS-B settings that decide its first iteration (scipy.optimize.minimize defaults)
+_LBFGSB_PGTOL = 1e-5  # 'gtol': stop when the projected gradient's largest entry is this small
+_LBFGSB_FTOL = 2.2204460492503131e-09  # 'ftol': stop when the relative decrease is this small
+_LBFGSB_LINE_SEARCH = (1e-3, 0.9)  # its line search's sufficient-decrease and curvature factors
+_EPS = float(np.finfo(np.float64).eps)
+
+
+def _lbfgsb_first_iteration(objective, x0, bounds, max_evaluations) -> int:
+    """What ``scipy.optimize.minimize(objective, x0, jac=True, method='L-BFGS-B', bounds=bounds,
+    options={'maxfun': max_evaluations, 'maxiter': max_evaluations})`` evaluates, for a cap of
+    one or two evaluations and finite bounds ((n, 2) array), without scipy's per-call set-up.
+
+    Its first iteration has no curvature pairs yet (B = I), so its step is the generalized
+    Cauchy point along the projected steepest-descent path, and in a box the line search tries
+    that point first (step 1). The arithmetic below is L-BFGS-B 3.0's (``projgr``, ``cauchy``
+    with col = 0 and theta = 1, ``hpsolb``, the first ``dcsrch`` test), operation for
+    operation, so the points and thus theta are the same to the bit (tests compare with scipy).
+    ``objective`` is called at x0 and, when the cap allows and x0 is not already optimal, at
+    that point. Returns the iteration count scipy would report (0 when it would stop at the
+    cap: then ``objective`` raised at a third call, which this function does not make).
+    """
+    lower = [float(v) for v in bounds[:, 0]]
+    upper = [float(v) for v in bounds[:, 1]]
+    x = [min(max(float(v), lo), hi) for v, lo, hi in zip(x0, lower, upper)]  # np.clip
+    f0, g0 = objective(np.array(x))
+    f0, g0 = float(f0), [float(v) for v in g0]
+    if _projected_gradient_norm(x, g0, lower, upper) <= _LBFGSB_PGTOL:
+        return 0  # converged at x0
+    if max_evaluations < 2:
+        return 0
+    x1 = _cauchy_point(x, g0, lower, upper)
+    d = [b - a for a, b in zip(x, x1)]
+    gd0 = _dot(g0, d)
+    if gd0 >= 0.0:
+        return 0  # no descent direction: scipy stops (abnormal termination), one evaluation
+    f1, g1 = objective(np.array(x1))
+    f1, g1 = float(f1), [float(v) for v in g1]
+    ftol, gtol = _LBFGSB_LINE_SEARCH
+    gtest = ftol * gd0
+    ftest = f0 + 1.0 * gtest
+    gd1 = _dot(g1, d)
+    # dcsrch at step 1 = its maximum: accepted ('STP = STPMAX' or convergence) or another step
+    accepted = f1 <= ftest and (gd1 <= gtest or abs(gd1) <= gtol * (-gd0))
+    if not accepted:
+        return 0  # scipy's line search asks for a third point: the cap stops it
+    if _projected_gradient_norm(x1, g1, lower, upper) <= _LBFGSB_PGTOL:
+        return 1
+    ddum = max(abs(f0), abs(f1), 1.0)
+    factr = _LBFGSB_FTOL / _EPS
+    return 1 if (f0 - f1) <= _EPS * factr * ddum else 0
+
+
+def _dot(a, b) -> float:
+    total = 0.0
+    for u, v in zip(a, b):
+        total += u * v
+    return total
+
+
+def _projected_gradient_norm(x, g, lower, upper) -> float:
+    """L-BFGS-B's ``projgr``: the largest |projected gradient| entry (both bounds finite)."""
+    norm = 0.0
+    for xi, gi, lo, hi in zip(x, g, lower, upper):
+        if gi < 0.0:
+            gi = max(xi - hi, gi)
+        else:
+            gi = min(xi - lo, gi)
+        norm = max(norm, abs(gi))
+    return norm
+
+
+def _cauchy_point(x, g, lower, upper):
+    """L-BFGS-B's ``cauchy`` for B = I (no corrections yet, theta = 1), every variable boxed:
+    the first minimiser of g^T s + |s|^2 / 2 along the projected path P(x - t g)."""
+    n = len(x)
+    d = [0.0] * n
+    breaks, order = [], []  # breakpoint t of each moving variable, and its index
+    bkmin, ibkmin = 0.0, -1
+    f1 = 0.0
+    for i in range(n):
+        neggi = -g[i]
+        tl, tu = x[i] - lower[i], upper[i] - x[i]
+        if upper[i] - lower[i] <= 0.0:
+            fixed = True  # a variable with equal bounds never moves
+        elif tl <= 0.0:
+            fixed = neggi <= 0.0
+        elif tu <= 0.0:
+            fixed = neggi >= 0.0
+        else:
+            fixed = abs(neggi) <= 0.0
+        if fixed:
+            continue
+        d[i] = neggi
+        f1 = f1 - neggi * neggi
+        if neggi < 0.0:
+            breaks.append(tl / (-neggi))
+        elif neggi > 0.0:
+            breaks.append(tu / neggi)
+        else:
+            continue
+        order.append(i)
+        if len(breaks) == 1 or breaks[-1] < bkmin:
+            bkmin, ibkmin = breaks[-1], len(breaks) - 1
+    xcp = list(x)
+    nbreak = len(breaks)
+    if nbreak == 0:
+        return xcp
+    f2 = -1.0 * f1
+    f2_org = f2
+    dtm = -f1 / f2
+    tsum = 0.0
+    nleft = nbreak
+    step = 1
+    tj = 0.0
+    while True:
+        tj0 = tj
+        if step == 1:
+            tj, ibp = bkmin, order[ibkmin]
+        else:
+            if step == 2 and ibkmin != nbreak - 1:
+                breaks[ibkmin], order[ibkmin] = breaks[nbreak - 1], order[nbreak - 1]
+            _hpsolb(nleft, breaks, order, step - 2)
+            tj, ibp = breaks[nleft - 1], order[nleft - 1]
+        dt = tj - tj0
+        if dtm < dt:
+            break
+        tsum = tsum + dt
+        nleft -= 1
+        step += 1
+        dibp = d[ibp]
+        d[ibp] = 0.0
+        if dibp > 0.0:
+            zibp = upper[ibp] - x[ibp]
+            xcp[ibp] = upper[ibp]
+        else:
+            zibp = lower[ibp] - x[ibp]
+            xcp[ibp] = lower[ibp]
+        if nleft == 0 and nbreak == n:
+            return xcp  # every variable at a bound
+        dibp2 = dibp * dibp
+        f1 = f1 + dt * f2 + dibp2 - 1.0 * dibp * zibp
+        f2 = f2 - 1.0 * dibp2
+        f2 = max(_EPS * f2_org, f2)
+        if nleft > 0:
+            dtm = -f1 / f2
+            continue
+        dtm = 0.0  # every moving variable had a breakpoint ('bnded')
+        break
+    if dtm <= 0.0:
+        dtm = 0.0
+    tsum = tsum + dtm
+    # xcp + tsum d with the BLAS daxpy L-BFGS-B calls: its kernel may fuse the multiply-add
+    return [float(v) for v in blas.daxpy(np.array(d), np.array(xcp), a=tsum)]
+
+
+def _hpsolb(n, t, order, iheap):
+    """L-BFGS-B's ``hpsolb`` on t[:n] (0-based): heapify when ``iheap`` is 0, then move the
+    least element to t[n - 1] (ties: the order L-BFGS-B picks, which decides its round-off)."""
+    if iheap == 0:
+        for k in range(1, n):
+            ddum, indxin = t[k], order[k]
+            i = k + 1  # 1-based heap position
+            while i > 1:
+                j = i // 2
+                if ddum < t[j - 1]:
+                    t[i - 1], order[i - 1] = t[j - 1], order[j - 1]
+                    i = j
+                else:
+                    break
+            t[i - 1], order[i - 1] = ddum, indxin
+    if n > 1:
+        i = 1
+        out, indxou = t[0], order[0]
+        ddum, indxin = t[n - 1], order[n - 1]
+        while True:
+            j = i + i
+            if j <= n - 1:
+                if t[j] < t[j - 1]:
+                    j = j + 1
+                if t[j - 1] < ddum:
+                    t[i - 1], order[i - 1] = t[j - 1], order[j - 1]
+                    i = j
+                    continue
+            break
+        t[i - 1], order[i - 1] = ddum, indxin
+        t[n - 1], order[n - 1] = out, indxou
 
 
 def length_scale_factors(slope, density_rel, *, slope_floor, slope_ceiling,
@@ -112,6 +306,8 @@ class GPSolution:
     jitter: float  # diagonal jitter that had to be added (m^2), 0 if none
     kernel: Optional[np.ndarray]  # (S, n, n) K at theta (padded slots 0); None when compiled
     gradient: Optional[np.ndarray] = None  # (3,) dJ/dlog(theta) when the solver gave it
+    logdets: Optional[np.ndarray] = None  # (S,) log|A| of each segment when compiled
+    pair_terms: tuple = ()  # compiled: (K, q) (S, n, n), see gp_compiled._solve_batched
 
 
 @dataclass(frozen=True)
@@ -274,7 +470,8 @@ class FrameGP:
         self.compiled_error = None  # why the numba kernel failed, if it did (then numpy)
         self.cholesky_fallbacks = 0  # jittered retries of this object and those it came from
         self.factorisations = 0  # uncached solves of this object (the unit of fitting cost)
-        self._cache = None
+        self._cache = []  # [(theta bytes, GPSolution)]: the last _CACHED_SOLUTIONS solves
+        self._known = None  # ([(theta bytes, compiled solution)], changed (S,)): with_noise
 
     def _pair_geometry(self):
         """(q, prefactor) (S, n, n) of the numpy path, 0 on padded pairs; computed once.
@@ -303,8 +500,15 @@ class FrameGP:
         keep, grid_index = self._grid_slots()  # the grid candidates' slots; padding gets 0
         other.noise_var = np.where(self.is_anchor, anchor_var, 0.0)
         other.noise_var[keep] = np.asarray(noise_var, dtype=np.float64).reshape(-1)[grid_index]
-        other._cache = None  # cholesky_fallbacks carries on: it counts the whole chain
+        other._cache = []  # cholesky_fallbacks carries on: it counts the whole chain
         other.factorisations = 0
+        # this object's cached solutions stay valid for the copy's segments whose noise is
+        # unchanged: a solve at their theta recomputes only the others (bit for bit the same)
+        compiled_solutions = [(key, sol) for key, sol in self._cache if sol.logdets is not None]
+        other._known = None
+        if compiled_solutions:
+            other._known = (compiled_solutions,
+                            np.any(other.noise_var != self.noise_var, axis=1))
         return other
 
     def to_grid(self, slot_values, fill) -> np.ndarray:
@@ -342,13 +546,14 @@ class FrameGP:
         """
         theta = np.asarray(theta, dtype=np.float64)
         key = theta.tobytes()
-        if self._cache is not None and self._cache[0] == key:
-            return self._cache[1]  # L-BFGS-B re-evaluates its start and end points
+        for cached_key, cached in self._cache:
+            if cached_key == key:  # L-BFGS-B re-evaluates its start and end points
+                return cached
         self.factorisations += 1
         sol = self._solve_compiled(theta) if self.backend == 'numba' else None
         if sol is None:
             sol = self._solve_numpy(theta)
-        self._cache = (key, sol)
+        self._cache = self._cache[1 - _CACHED_SOLUTIONS:] + [(key, sol)]
         return sol
 
     def _lml(self, logdet, alpha):
@@ -357,16 +562,25 @@ class FrameGP:
 
     def _solve_compiled(self, theta) -> Optional[GPSolution]:
         """The whole step in numba; None when a matrix is not PD or numba fails (then numpy)."""
+        args = (self.r, self.d, self.z, self.noise_var, self.counts,
+                *(float(t) for t in theta))
+        known_solutions, changed = self._known if self._known is not None else ([], None)
+        known = next((sol for key, sol in known_solutions if key == theta.tobytes()), None)
         try:
-            ok, logdets, alpha, a_inv, gradient = gp_compiled.solve_batched(
-                self.r, self.d, self.z, self.noise_var, self.counts, *(float(t) for t in theta))
+            if known is not None:
+                ok, logdets, alpha, a_inv, gradient, *pair_terms = gp_compiled.resolve_batched(
+                    *args, changed, known.logdets, known.alpha, known.a_inv, *known.pair_terms)
+            else:
+                ok, logdets, alpha, a_inv, gradient, *pair_terms = gp_compiled.solve_batched(
+                    *args)
         except Exception as exc:  # noqa: BLE001 - numba compile/runtime failure
             self.backend, self.compiled_error = 'numpy', str(exc)  # numpy from now on
             return None
         if not ok.all():
             return None
         logdet = float(logdets.sum())
-        return GPSolution(theta, alpha, a_inv, self._lml(logdet, alpha), 0.0, None, gradient)
+        return GPSolution(theta, alpha, a_inv, self._lml(logdet, alpha), 0.0, None, gradient,
+                          logdets, tuple(pair_terms))
 
     def _solve_numpy(self, theta) -> GPSolution:
         """The numpy reference (and fallback): stacked factorisation of the padded batch."""
@@ -449,12 +663,17 @@ class FrameGP:
             values.append(-lml)
             return -lml, -grad
 
+        log_bounds = np.log(np.asarray(bounds, dtype=np.float64))
         try:
-            res = minimize(objective, np.log(theta0), jac=True, method='L-BFGS-B',
-                           bounds=np.log(np.asarray(bounds, dtype=np.float64)),
-                           options={'maxfun': int(max_evaluations),
-                                    'maxiter': int(max_evaluations)})
-            info['iterations'] = int(res.nit)
+            if max_evaluations <= 2 and np.all(np.isfinite(log_bounds)):
+                # the warm-started frames: scipy's first iteration in closed form (same points)
+                info['iterations'] = _lbfgsb_first_iteration(objective, np.log(theta0),
+                                                             log_bounds, max_evaluations)
+            else:
+                res = minimize(objective, np.log(theta0), jac=True, method='L-BFGS-B',
+                               bounds=log_bounds, options={'maxfun': int(max_evaluations),
+                                                           'maxiter': int(max_evaluations)})
+                info['iterations'] = int(res.nit)
         except _BudgetExhausted:
             pass
         except _NUMERICAL_ERRORS + (RuntimeError,):  # RuntimeError: scipy's own failures

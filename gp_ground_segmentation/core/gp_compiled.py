@@ -31,19 +31,38 @@ def _solve_batched(r, d, z, noise_var, counts, sigma_f, gain, sigma_n):
     """Factorise A_s = K_s + diag(sigma_n^2 + noise_var) of every segment s at theta.
 
     r, d, z, noise_var: (S, n) padded training data, the first ``counts[s]`` slots of row s
-    valid. Returns (ok (S,), logdet (S,), alpha (S, n), a_inv (S, n, n), gradient (3,)) where
-    ``gradient`` is dJ/dlog(sigma_f, a, sigma_n) summed over the segments:
-    1/2 tr((alpha alpha^T - A^-1) dA/dlog theta). K is not kept. ``ok[s]`` is False
+    valid. Returns (ok (S,), logdet (S,), alpha (S, n), a_inv (S, n, n), gradient (3,),
+    kernel (S, n, n), q (S, n, n)) where ``gradient`` is dJ/dlog(sigma_f, a, sigma_n) summed
+    over the segments: 1/2 tr((alpha alpha^T - A^-1) dA/dlog theta); ``kernel`` and ``q`` hold
+    K and (r_i - r_j)^2 / (d_i^2 + d_j^2) of each segment in their first counts[s] rows and
+    columns (the rest is not written) for :func:`_resolve_batched`. ``ok[s]`` is False
     when Cholesky meets a non-positive pivot; then that segment's outputs are meaningless and
     the caller falls back to jittered numpy.
+    """
+    nothing = np.zeros((0, 0, 0))
+    return resolve_batched(r, d, z, noise_var, counts, sigma_f, gain, sigma_n,
+                           np.ones(r.shape[0], dtype=np.bool_), np.zeros(0), np.zeros((0, 0)),
+                           nothing, nothing, nothing)  # every segment changed: nothing known
+
+
+def _resolve_batched(r, d, z, noise_var, counts, sigma_f, gain, sigma_n, changed,
+                     known_logdet, known_alpha, known_a_inv, known_kernel, known_q):
+    """:func:`_solve_batched` when a solution at this theta of the same data with another
+    noise in the ``changed`` (S,) segments is known: its K and q (independent of the noise)
+    are used as they are and returned, and the log|A|, alpha and A^-1 of the unchanged
+    segments are copied. The gradient terms are still summed over every segment in the same
+    order, so the outputs are those of :func:`_solve_batched` bit for bit; the kernel and the
+    Cholesky factorisation and inverse (the O(n^3) part) run only where needed. With empty
+    ``known_kernel`` and ``known_q`` (0, 0, 0), K and q are computed.
     """
     s_count, n = r.shape
     logdet = np.zeros(s_count)
     alpha = np.zeros((s_count, n))
     a_inv = np.zeros((s_count, n, n))
     ok = np.ones(s_count, dtype=np.bool_)
-    k = np.zeros((n, n))  # K and q of the current segment: scratch, not kept
-    q = np.zeros((n, n))
+    kernel_known = known_kernel.shape[0] > 0
+    kernel = known_kernel if kernel_known else np.empty((s_count, n, n))
+    q_all = known_q if kernel_known else np.empty((s_count, n, n))
     lower = np.zeros((n, n))
     inv_lower = np.zeros((n, n))
     sf2 = sigma_f * sigma_f
@@ -57,7 +76,9 @@ def _solve_batched(r, d, z, noise_var, counts, sigma_f, gain, sigma_n):
         ainv = a_inv[s]
         for i in range(m, n):
             ainv[i, i] = 1.0  # padded slots: identity rows, as in the numpy reference
-        for i in range(m):  # K and q = (r_i - r_j)^2 / (d_i^2 + d_j^2), symmetric
+        k = kernel[s]
+        q = q_all[s]
+        for i in range(0 if kernel_known else m):  # K, q = (r_i - r_j)^2 / (d_i^2 + d_j^2)
             di = d[s, i]
             for j in range(i + 1):
                 dj = d[s, j]
@@ -69,7 +90,13 @@ def _solve_batched(r, d, z, noise_var, counts, sigma_f, gain, sigma_n):
                 q[j, i] = qij
                 k[i, j] = kij
                 k[j, i] = kij
-        for j in range(m):  # Cholesky of A = K + diag(noise), lower
+        if not changed[s]:  # known: A^-1, alpha and log|A| of this segment at this theta
+            for i in range(n):  # element loops: slice copies cost numba seconds to compile
+                alpha[s, i] = known_alpha[s, i]
+                for j in range(n):
+                    ainv[i, j] = known_a_inv[s, i, j]
+            logdet[s] = known_logdet[s]
+        for j in range(m if changed[s] else 0):  # Cholesky of A = K + diag(noise), lower
             v = k[j, j] + sn2 + noise_var[s, j]
             for t in range(j):
                 v -= lower[j, t] * lower[j, t]
@@ -86,21 +113,21 @@ def _solve_batched(r, d, z, noise_var, counts, sigma_f, gain, sigma_n):
                 lower[i, j] = v / ljj
         if not ok[s]:
             continue
-        for i in range(m):  # L^-1, lower
+        for i in range(m if changed[s] else 0):  # L^-1, lower
             inv_lower[i, i] = 1.0 / lower[i, i]
             for j in range(i):
                 v = 0.0
                 for t in range(j, i):
                     v -= lower[i, t] * inv_lower[t, j]
                 inv_lower[i, j] = v / lower[i, i]
-        for i in range(m):  # A^-1 = L^-T L^-1
+        for i in range(m if changed[s] else 0):  # A^-1 = L^-T L^-1
             for j in range(i + 1):
                 v = 0.0
                 for t in range(i, m):
                     v += inv_lower[t, i] * inv_lower[t, j]
                 ainv[i, j] = v
                 ainv[j, i] = v
-        for i in range(m):
+        for i in range(m if changed[s] else 0):
             v = 0.0
             for j in range(m):
                 v += ainv[i, j] * z[s, j]
@@ -113,7 +140,7 @@ def _solve_batched(r, d, z, noise_var, counts, sigma_f, gain, sigma_n):
                 g_gain += wk * q[i, j]
             g_sn += ai * ai - ainv[i, i]
     gradient = np.array([g_sf, g_gain * inv_gain2, g_sn * sn2])
-    return ok, logdet, alpha, a_inv, gradient
+    return ok, logdet, alpha, a_inv, gradient, kernel, q_all
 
 
 def _std_batched(counts, a_inv, k_star, sigma_f):
@@ -175,12 +202,16 @@ def _predict_batched(r, d, counts, alpha, a_inv, r_star, d_star, sigma_f, gain, 
     return mean, std, k_star
 
 
+# solve_batched stays Python: one compiled function for both entry points (compiling a
+# second one that only calls the first doubled numba's work on a new install)
+solve_batched = _solve_batched
 if AVAILABLE:
-    solve_batched = kernel(_solve_batched)
+    resolve_batched = kernel(_resolve_batched)
     std_batched = kernel(_std_batched)  # before predict: it calls it
     predict_batched = kernel(_predict_batched)
 else:  # pragma: no cover - the numpy backend is used instead; these are never called
-    solve_batched, std_batched, predict_batched = _solve_batched, _std_batched, _predict_batched
+    resolve_batched = _resolve_batched
+    std_batched, predict_batched = _std_batched, _predict_batched
 
 
 def warm_up() -> None:
@@ -192,8 +223,10 @@ def warm_up() -> None:
     if AVAILABLE:
         one = np.ones((1, 2))
         counts = np.array([2], dtype=np.intp)
-        _, _, alpha, a_inv, _ = solve_batched(np.array([[0.0, 1.0]]), one, one, one * 0.0,
-                                              counts, 1.0, 1.0, 0.1)
+        _, logdet, alpha, a_inv, _, k, q = solve_batched(np.array([[0.0, 1.0]]), one, one,
+                                                         one * 0.0, counts, 1.0, 1.0, 0.1)
+        resolve_batched(np.array([[0.0, 1.0]]), one, one, one * 0.0, counts, 1.0, 1.0, 0.1,
+                        np.zeros(1, dtype=np.bool_), logdet, alpha, a_inv, k, q)
         _, _, k_star = predict_batched(np.array([[0.0, 1.0]]), one, counts, alpha, a_inv, one,
                                        one, 1.0, 1.0, True)
         std_batched(counts, a_inv, k_star, 1.0)

@@ -270,11 +270,9 @@ def ground_offsets(z, z_hat, ground, segment, bin_index, num_segments: int, num_
     m, n = int(num_segments), int(num_bins)
     args = (np.asarray(z), np.asarray(z_hat), np.asarray(ground, dtype=bool),
             np.asarray(segment), np.asarray(bin_index), m, n, 3.0 * float(noise_std))
-    if compiled:
-        out = run(True, _ground_offsets_compiled, _ground_offsets_unavailable, *args)
-        if out is not None:  # None: not compiled yet, or a residual is not finite
-            return out
-    return _ground_offsets_numpy(*args)
+    out = run(compiled, _ground_offsets_compiled, _ground_offsets_numpy, *args)
+    # None: the kernel met a residual that is not finite, which the reference handles
+    return _ground_offsets_numpy(*args) if out is None else out
 
 
 def _ground_offsets_numpy(z, z_hat, ground, segment, bin_index, m, n, band):
@@ -285,11 +283,6 @@ def _ground_offsets_numpy(z, z_hat, ground, segment, bin_index, m, n, band):
     centre = float(np.median(residual))
     return _edge_means_numpy(residual, segment[ground], bin_index[ground], m, n, centre,
                              centre - band, centre + band)
-
-
-def _ground_offsets_unavailable(*_args):
-    """run()'s stand-in while the kernel compiles: ground_offsets then takes the reference."""
-    return None
 
 
 def _ground_offsets_kernel(z, z_hat, ground, segment, bin_index, m, n, band):
@@ -338,47 +331,50 @@ def _median_of(values):
     below = -np.inf  # the largest value ranked below every candidate
     candidates = values
     while True:
-        count = candidates.size
         low = candidates.min()
         high = candidates.max()
-        scale = _MEDIAN_BUCKETS / (high - low) if high > low else 0.0
-        if count <= _MEDIAN_SORT_SIZE or not np.isfinite(scale) or scale == 0.0:
-            if high == low:
-                upper = lower = low
-            else:
-                ordered = np.sort(candidates)
-                upper = ordered[rank]
-                lower = ordered[rank - 1] if rank > 0 else below
-            if rank == 0:
-                lower = below
+        if high == low:
+            upper = low
+            lower = low if rank > 0 else below
             break
-        counts = np.zeros(_MEDIAN_BUCKETS, np.int64)
-        for v in candidates:
-            counts[min(int((v - low) * scale), _MEDIAN_BUCKETS - 1)] += 1
-        passed = 0
-        bucket = 0
-        while passed + counts[bucket] <= rank:
-            passed += counts[bucket]
-            bucket += 1
-        if counts[bucket] == count:  # round-off put everything in one bucket: sort instead
-            ordered = np.sort(candidates)
-            upper = ordered[rank]
-            lower = ordered[rank - 1] if rank > 0 else below
-            break
-        kept = np.empty(counts[bucket], candidates.dtype)
-        j = 0
-        for v in candidates:
-            b = min(int((v - low) * scale), _MEDIAN_BUCKETS - 1)
-            if b == bucket:
-                kept[j] = v
-                j += 1
-            elif b < bucket and v > below:
-                below = v
-        candidates = kept
-        rank -= passed
+        scale = _MEDIAN_BUCKETS / (high - low)
+        if candidates.size > _MEDIAN_SORT_SIZE and np.isfinite(scale):
+            kept, passed, below = _bucket_of_rank(candidates, low, scale, rank, below)
+            # round-off may put everything in one bucket: then sort, as for a few candidates
+            if kept.size < candidates.size:
+                candidates = kept
+                rank -= passed
+                continue
+        ordered = np.sort(candidates)
+        upper = ordered[rank]
+        lower = ordered[rank - 1] if rank > 0 else below
+        break
     if size % 2 == 1:
         return upper
     return (lower + upper) / 2.0  # as np.median: the mean of the two middle values
+
+
+def _bucket_of_rank(candidates, low, scale, rank, below):
+    """One round of :func:`_median_of`: (the candidates of the bucket holding ``rank``, how
+    many lie in lower buckets, ``below`` raised to the largest of those)."""
+    counts = np.zeros(_MEDIAN_BUCKETS, np.int64)
+    for v in candidates:
+        counts[min(int((v - low) * scale), _MEDIAN_BUCKETS - 1)] += 1
+    passed = 0
+    bucket = 0
+    while passed + counts[bucket] <= rank:
+        passed += counts[bucket]
+        bucket += 1
+    kept = np.empty(counts[bucket], candidates.dtype)
+    j = 0
+    for v in candidates:
+        b = min(int((v - low) * scale), _MEDIAN_BUCKETS - 1)
+        if b == bucket:
+            kept[j] = v
+            j += 1
+        elif b < bucket and v > below:
+            below = v
+    return kept, passed, below
 
 
 def _edge_means_numpy(residual, segment, bin_index, m, n, centre, low, high):
@@ -413,6 +409,7 @@ def _sums_to_edges(sums, counts, m, n, centre):
     return out
 
 
+_bucket_of_rank = kernel(_bucket_of_rank) or _bucket_of_rank
 _median_of = kernel(_median_of) or _median_of
 _sums_to_edges = kernel(_sums_to_edges) or _sums_to_edges
 _ground_offsets_compiled = kernel(_ground_offsets_kernel)

@@ -25,6 +25,11 @@ Modes:
                 times, the overhead around ``segment()`` and the node total
                 (hand-off + decode + segment + encode + publish). The issue-14 load test is
                 ``--latency --latency-s 60 --subscribers 3``.
+``--node-process``  with ``--latency``: the node runs alone in a child process (spun by a
+                SingleThreadedExecutor, as ``ros2 run`` starts it) instead of sharing this
+                process - and its GIL - with the publisher, the ``ground`` subscription that
+                consumes its output and the sampler thread; its ProcessingWindow is read over a
+                pipe (slot occupancy only at each publish). What a deployed node sees.
 ``--overload``  50 Hz (5x real time) for ``--overload-s`` (60 s): input Hz (published and
                 received), processed Hz, drops as counted by the node and as reported on
                 /diagnostics (with its level), maximum slot occupancy (sampled every 5 ms (and
@@ -38,6 +43,7 @@ keeps the other mode's previous sub-section. Without a mode flag both run.
 
     python benchmarks/bench_node.py --latency
     python benchmarks/bench_node.py --latency --latency-s 60 --subscribers 3
+    python benchmarks/bench_node.py --node-process --latency-s 60 --subscribers 3
     python benchmarks/bench_node.py --overload
 """
 
@@ -56,7 +62,7 @@ import numpy as np
 
 # An isolated DDS domain on localhost before any rclpy context exists (same rule as the tests);
 # a subscriber process (--as-subscriber) keeps the domain its parent gave it.
-if '--as-subscriber' not in sys.argv:
+if '--as-subscriber' not in sys.argv and '--as-node' not in sys.argv:
     os.environ['ROS_DOMAIN_ID'] = str(1 + (os.getpid() + 37) % 100)
 os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
 
@@ -97,24 +103,22 @@ class NodeBench:
     """Node + publisher + /diagnostics listener in one private rclpy context."""
 
     def __init__(self, queue_size: int = 1, diag_period_s: float = 1.0, window: int = 100000,
-                 executor: str = 'multi'):
+                 executor: str = 'multi', node_process: bool = False):
         import rclpy
         from diagnostic_msgs.msg import DiagnosticArray
         from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
-        from rclpy.parameter import Parameter
         from rclpy.qos import QoSProfile, ReliabilityPolicy
         from sensor_msgs.msg import PointCloud2
 
         sys.path.insert(0, str(REPO))
-        from gp_ground_segmentation.ros.node import GroundSegmentationNode
-
         self.context = rclpy.Context()
         rclpy.init(context=self.context)
-        self.node = GroundSegmentationNode(context=self.context, parameter_overrides=[
-            Parameter('queue_size', value=int(queue_size)),
-            Parameter('diagnostics_period_s', value=float(diag_period_s)),
-            # keep every frame's timings: medians over the whole run, not the last 50
-            Parameter('diagnostics_window', value=int(window))])
+        # node_process: the node alone in a child process (as `ros2 run` starts it), this
+        # process only publishes and listens; else the node shares this process (and its GIL)
+        # with the publisher, the output subscription and the sampler thread
+        self.child = NodeProcess(queue_size, diag_period_s, window) if node_process else None
+        self.node = None if node_process else make_node(queue_size, diag_period_s, window,
+                                                        self.context)
         self.peer = rclpy.create_node('bench_node_publisher', context=self.context)
         self.lock = threading.Lock()
         self.statuses = []  # (monotonic time, DiagnosticStatus) of our node
@@ -131,7 +135,10 @@ class NodeBench:
                          else MultiThreadedExecutor(num_threads=3, context=self.context))
         self.executor_name = ('SingleThreadedExecutor' if executor == 'single'
                               else 'MultiThreadedExecutor(3)')
-        self.executor.add_node(self.node)
+        if node_process:
+            self.executor_name = 'node in its own process (SingleThreadedExecutor)'
+        if self.node is not None:
+            self.executor.add_node(self.node)
         self.executor.add_node(self.peer)
         self.thread = threading.Thread(target=self.executor.spin, daemon=True)
         self.thread.start()
@@ -152,23 +159,112 @@ class NodeBench:
             self.outputs += 1
 
     def slot_len(self) -> int:
+        if self.child is not None:
+            return self.child.query()['slot']
         return len(self.node._slot)  # noqa: SLF001 - read-only peek at the latest-wins slot
 
     @property
     def queue_size(self) -> int:
+        if self.child is not None:
+            return self.child.query()['queue_size']
         return int(self.node._slot.maxlen)  # noqa: SLF001
 
+    def counts(self) -> tuple:
+        """The node's frames (received, processed, dropped, failed) so far."""
+        w = self.child.query() if self.child is not None else self.node.window.snapshot()
+        return tuple(w[f'frames_{k}'] for k in ('received', 'processed', 'dropped', 'failed'))
+
+    def snapshot(self) -> dict:
+        """The node's ProcessingWindow snapshot: frame counts and per-frame timings."""
+        if self.child is not None:
+            return self.child.query('timings')
+        return self.node.window.snapshot()
+
     def idle(self) -> bool:
-        w = self.node.window
-        return w.frames_processed + w.frames_dropped + w.frames_failed >= w.frames_received \
-            and self.slot_len() == 0
+        received, processed, dropped, failed = self.counts()
+        return processed + dropped + failed >= received and self.slot_len() == 0
 
     def close(self):
         import rclpy
         self.executor.shutdown(timeout_sec=5.0)
-        self.node.destroy_node()
+        if self.node is not None:
+            self.node.destroy_node()
+        if self.child is not None:
+            self.child.close()
         self.peer.destroy_node()
         rclpy.try_shutdown(context=self.context)
+
+
+def make_node(queue_size: int, diag_period_s: float, window: int, context=None):
+    """A GroundSegmentationNode with the benchmark's parameter overrides."""
+    from rclpy.parameter import Parameter
+
+    from gp_ground_segmentation.ros.node import GroundSegmentationNode
+    return GroundSegmentationNode(context=context, parameter_overrides=[
+        Parameter('queue_size', value=int(queue_size)),
+        Parameter('diagnostics_period_s', value=float(diag_period_s)),
+        # keep every frame's timings: medians over the whole run, not the last 50
+        Parameter('diagnostics_window', value=int(window))])
+
+
+class NodeProcess:
+    """The node alone in a child process (``--as-node``), on this process's ROS_DOMAIN_ID.
+
+    The child spins the node with a SingleThreadedExecutor (what ``main()`` spins) and answers
+    one JSON line per request line on stdin: its frame counts and slot occupancy, or (request
+    ``timings``) also every frame's timings. Its main thread waits in a blocking read between
+    requests, so nothing but the node runs Python in that process.
+    """
+
+    def __init__(self, queue_size: int, diag_period_s: float, window: int):
+        self.proc = subprocess.Popen(
+            [sys.executable, __file__, '--as-node', str(queue_size), str(diag_period_s),
+             str(window)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+        if self.proc.stdout.readline().strip() != 'ready':
+            raise RuntimeError('the node process did not start')
+
+    def query(self, what: str = 'counts') -> dict:
+        self.proc.stdin.write(what + '\n')
+        self.proc.stdin.flush()
+        line = self.proc.stdout.readline()
+        if not line:
+            raise RuntimeError('the node process exited')
+        return json.loads(line)
+
+    def close(self):
+        self.proc.stdin.close()
+        try:
+            self.proc.wait(10.0)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+
+
+def node_process_main(queue_size: str, diag_period_s: str, window: str) -> int:
+    """The child of :class:`NodeProcess`."""
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    sys.path.insert(0, str(REPO))
+
+    from gp_ground_segmentation.core.allocator import keep_freed_memory
+    keep_freed_memory()  # as the node's main() does
+    rclpy.init()
+    node = make_node(int(queue_size), float(diag_period_s), int(window))
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    threading.Thread(target=executor.spin, daemon=True).start()
+    print('ready', flush=True)
+    for request in sys.stdin:
+        snap = node.window.snapshot()
+        reply = {k: snap[k] for k in ('frames_received', 'frames_processed', 'frames_dropped',
+                                      'frames_failed')}
+        reply.update(slot=len(node._slot), queue_size=int(node._slot.maxlen),  # noqa: SLF001
+                     rss_mb=rss_bytes()[0] / MB)
+        if request.strip() == 'timings':
+            reply['timings'] = snap['timings']
+        print(json.dumps(reply, default=float), flush=True)
+    # stdin closed: exit now (as subscriber_main: a clean shutdown under a spinning daemon
+    # thread only aborts noisily)
+    os._exit(0)
 
 
 class Sampler(threading.Thread):
@@ -194,8 +290,9 @@ class Sampler(threading.Thread):
             now = time.monotonic()
             if now - expected > 0.020:
                 self.stalls.append((now - expected) * 1e3)
-            self.max_slot = max(self.max_slot, self.bench.slot_len())
-            self.slot_samples += 1
+            if self.bench.child is None:  # a child node is asked only at each publish
+                self.max_slot = max(self.max_slot, self.bench.slot_len())
+                self.slot_samples += 1
             if now >= next_rss:
                 self.rss.append((now - self.t0, rss_bytes()[0]))
                 next_rss += self.rss_period_s
@@ -362,27 +459,26 @@ def status_dict(status) -> dict:
 # ------------------------------------------------------------------------------------ modes
 
 def run_latency(msgs: list, duration_s: float, rate_hz: float = 10.0, warmup_s: float = 3.0,
-                slot_period_s: float = 0.005, executor: str = 'single', subscribers: int = 0):
-    bench = NodeBench(queue_size=1, executor=executor)
+                slot_period_s: float = 0.005, executor: str = 'single', subscribers: int = 0,
+                node_process: bool = False):
+    bench = NodeBench(queue_size=1, executor=executor, node_process=node_process)
     procs = []
     try:
         procs = start_subscribers(bench, subscribers)
         load_at_start = os.getloadavg()
-        w = bench.node.window
         sampler = Sampler(bench, slot_period_s)
         sampler.start()
         mark = {}
 
         def tick(_sent, elapsed):
             if 'warm' not in mark and elapsed >= warmup_s:
-                mark['warm'] = (w.frames_received, w.frames_processed, w.frames_dropped,
-                                w.frames_failed)
+                mark['warm'] = bench.counts()
         pub = publish_loop(bench, msgs, rate_hz, duration_s, sampler, tick)
         drain(bench)
         t_end = time.monotonic()
         sampler.stop()
         status = last_status(bench, t_end)
-        snap = w.snapshot()
+        snap = bench.snapshot()
         subscriber_counts, procs = stop_subscribers(procs), []
         warm = mark.get('warm', (0, 0, 0, 0))
         timings = snap['timings'][warm[1]:]  # window holds every frame (window >> frames)
@@ -401,13 +497,15 @@ def run_latency(msgs: list, duration_s: float, rate_hz: float = 10.0, warmup_s: 
             'received': received, 'processed': processed, 'dropped': dropped, 'failed': failed,
             'processed_hz': processed / steady_s if steady_s > 0 else float('nan'),
             'stages': stats, 'max_slot': sampler.max_slot, 'queue_size': bench.queue_size,
-            'executor': bench.executor_name,
+            'executor': bench.executor_name, 'node_process': node_process,
             'stalls': list(sampler.stalls),
             'status_level': level_name(status),
             'status_message': status.message if status else 'no status',
             'diag': status_dict(status), 'points': msgs[0].width,
             'subscribers': subscribers, 'subscriber_counts': subscriber_counts,
             'load_at_start': load_at_start,
+            'fastdds_profile': os.environ.get('FASTRTPS_DEFAULT_PROFILES_FILE',
+                                              'none (Fast DDS defaults)'),
         }
         first = snap['timings'][0] if snap['timings'] else {}
         result['cold_ms'] = first.get('total', float('nan'))
@@ -535,7 +633,16 @@ def latency_markdown(r: dict) -> str:
         f"({fmt(r['dropped_total'] - r['dropped'])} dropped during warm-up).",
         f"- Stalls: {stalls_text(r)}.",
         f"- Last /diagnostics status: {r['status_level']} ({r['status_message']}).",
+        transport_text(r),
     ])
+
+
+def transport_text(r: dict) -> str:
+    """Where the node ran, the Fast DDS profile, and the frames DDS lost before the node."""
+    where = ('the node alone in a child process' if r.get('node_process')
+             else 'the node in this process')
+    return (f"- {where}; FASTRTPS_DEFAULT_PROFILES_FILE: {r['fastdds_profile']}; published but "
+            f"never received by the node (lost in DDS): {r['published'] - r['received_total']}.")
 
 
 def load_markdown(r: dict) -> str:
@@ -577,6 +684,7 @@ def load_markdown(r: dict) -> str:
         f"{fmt(around[0])} ms -> {'met' if around[0] <= 3.0 else 'NOT met'}.",
         f"- Stalls: {stalls_text(r)}.",
         f"- Last /diagnostics status: {r['status_level']} ({r['status_message']}).",
+        transport_text(r),
     ])
 
 
@@ -619,8 +727,8 @@ def overload_markdown(r: dict) -> str:
     ])
 
 
-KEYS = ('latency-single', 'latency-multi', 'load-single', 'load-multi', 'overload-single',
-        'overload-multi')
+KEYS = ('latency-single', 'latency-multi', 'latency-process', 'load-single', 'load-multi',
+        'load-process', 'overload-single', 'overload-multi')
 
 
 def _sub_blocks(text: str) -> dict:
@@ -646,7 +754,11 @@ def write_results(blocks: dict) -> None:
              "the executor named in each heading (SingleThreadedExecutor is what the node's "
              'main() uses); the 6 KITTI 00 frames of the bag published round-robin to `points` '
              'with fresh stamps, RELIABLE writer -> the node\'s best-effort subscription; default '
-             'node parameters (queue_size 1).', '']
+             'node parameters (queue_size 1). Headings saying "node in its own process" '
+             '(`--node-process`): the node alone in a child process, as `ros2 run` starts it, '
+             'and this process only publishes and listens. Every process of the benchmark '
+             "sets glibc's malloc thresholds as the node's main() does "
+             '(`core/allocator.py`).', '']
     for mode in KEYS:
         if mode in previous:
             parts += [f'<!-- {mode} -->', previous[mode], f'<!-- /{mode} -->', '']
@@ -670,15 +782,34 @@ def main(argv=None) -> int:
                          'MultiThreadedExecutor(3), as the test harness does; both: one run each')
     ap.add_argument('--subscribers', type=int, default=0,
                     help='with --latency: this many extra subscriber processes on the outputs')
+    ap.add_argument('--node-process', action='store_true',
+                    help='with --latency: run the node alone in a child process (as ros2 run '
+                         'does) instead of in this process beside the publisher')
     ap.add_argument('--as-subscriber', action='store_true', help=argparse.SUPPRESS)
+    ap.add_argument('--as-node', nargs=3, help=argparse.SUPPRESS)
     ap.add_argument('--no-write', action='store_true', help='print only, keep RESULTS.md')
     args = ap.parse_args(argv)
     if args.as_subscriber:
         return subscriber_main()
+    if args.as_node:
+        return node_process_main(*args.as_node)
     if args.subscribers < 0:
         ap.error(f'--subscribers must be >= 0, got {args.subscribers}')
+    if args.node_process and (args.overload or args.executor != 'single'):
+        ap.error('--node-process runs the latency mode only, with the node spun by a '
+                 "SingleThreadedExecutor: drop --overload and --executor")
+    args.latency |= args.node_process
+    if args.node_process:
+        # between processes Fast DDS's default 512 KB shared-memory segment loses most 2 MB
+        # clouds (RESULTS.md); the README tells users to set this profile, and so do we
+        os.environ.setdefault('FASTRTPS_DEFAULT_PROFILES_FILE',
+                              str(REPO / 'config' / 'fastdds_large_shm.xml'))
     if not (args.latency or args.overload):
         args.latency = args.overload = True
+    # this process holds the node (or publishes to it): malloc as the node's main() sets it
+    sys.path.insert(0, str(REPO))
+    from gp_ground_segmentation.core.allocator import keep_freed_memory
+    keep_freed_memory()
     msgs = load_bag_messages()
     print(f'{len(msgs)} frames of {msgs[0].width:,} points ({len(msgs[0].data) / MB:.1f} MB '
           f'each); ROS_DOMAIN_ID {os.environ["ROS_DOMAIN_ID"]}', flush=True)
@@ -687,8 +818,10 @@ def main(argv=None) -> int:
     for executor in executors:
         if args.latency:
             r = run_latency(msgs, args.latency_s, slot_period_s=args.slot_sample_ms / 1e3,
-                            executor=executor, subscribers=args.subscribers)
-            key = f"{'load' if args.subscribers else 'latency'}-{executor}"
+                            executor=executor, subscribers=args.subscribers,
+                            node_process=args.node_process)
+            key = (f"{'load' if args.subscribers else 'latency'}-"
+                   f"{'process' if args.node_process else executor}")
             blocks[key] = load_markdown(r) if args.subscribers else latency_markdown(r)
             print(blocks[key] + '\n', flush=True)
         if args.overload:

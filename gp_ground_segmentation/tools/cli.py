@@ -30,6 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..core.allocator import keep_freed_memory
+
 EXIT_ERROR = 2
 
 
@@ -312,6 +314,9 @@ def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     prog = f'gp-ground-seg {args.command}'
+    # the process is ours: keep each frame's freed memory for the next frame (a third less
+    # time per replayed frame; core/allocator.py). Where it does not apply, nothing changes.
+    keep_freed_memory()
     try:
         return args.func(args)
     except KeyboardInterrupt:

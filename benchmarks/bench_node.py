@@ -30,6 +30,8 @@ Modes:
                 process - and its GIL - with the publisher, the ``ground`` subscription that
                 consumes its output and the sampler thread; its ProcessingWindow is read over a
                 pipe (slot occupancy only at each publish). What a deployed node sees.
+                Every process gets ``config/fastdds_large_shm.xml`` as the README says, unless
+                ``FASTRTPS_DEFAULT_PROFILES_FILE`` is set (set and empty: Fast DDS defaults).
 ``--overload``  50 Hz (5x real time) for ``--overload-s`` (60 s): input Hz (published and
                 received), processed Hz, drops as counted by the node and as reported on
                 /diagnostics (with its level), maximum slot occupancy (sampled every 5 ms (and
@@ -521,8 +523,9 @@ def run_latency(msgs: list, duration_s: float, rate_hz: float = 10.0, warmup_s: 
 
 
 def run_overload(msgs: list, duration_s: float, rate_hz: float = 50.0, warmup_s: float = 10.0,
-                 queue_size: int = 1, slot_period_s: float = 0.005, executor: str = 'single'):
-    bench = NodeBench(queue_size=queue_size, executor=executor)
+                 queue_size: int = 1, slot_period_s: float = 0.005, executor: str = 'single',
+                 window: int = 100000):
+    bench = NodeBench(queue_size=queue_size, executor=executor, window=window)
     try:
         w = bench.node.window
         sampler = Sampler(bench, slot_period_s)
@@ -641,7 +644,8 @@ def transport_text(r: dict) -> str:
     """Where the node ran, the Fast DDS profile, and the frames DDS lost before the node."""
     where = ('the node alone in a child process' if r.get('node_process')
              else 'the node in this process')
-    return (f"- {where}; FASTRTPS_DEFAULT_PROFILES_FILE: {r['fastdds_profile']}; published but "
+    profile = r['fastdds_profile'].replace(str(REPO) + os.sep, '')
+    return (f"- {where}; FASTRTPS_DEFAULT_PROFILES_FILE: {profile}; published but "
             f"never received by the node (lost in DDS): {r['published'] - r['received_total']}.")
 
 
@@ -774,6 +778,10 @@ def main(argv=None) -> int:
     ap.add_argument('--latency-s', type=float, default=30.0, help='latency run length (s)')
     ap.add_argument('--overload-s', type=float, default=60.0, help='overload run length (s)')
     ap.add_argument('--overload-hz', type=float, default=50.0, help='overload publish rate (Hz)')
+    ap.add_argument('--overload-window', type=int, default=100000,
+                    help="with --overload: the node's diagnostics_window (frames). The default "
+                         "keeps every frame's timings for the table, and they are part of the "
+                         "RSS; the node's own default, 50, shows the RSS of a deployed node")
     ap.add_argument('--slot-sample-ms', type=float, default=5.0,
                     help='slot occupancy sampling period (ms); it is also sampled at every '
                          'publish')
@@ -801,9 +809,13 @@ def main(argv=None) -> int:
     args.latency |= args.node_process
     if args.node_process:
         # between processes Fast DDS's default 512 KB shared-memory segment loses most 2 MB
-        # clouds (RESULTS.md); the README tells users to set this profile, and so do we
-        os.environ.setdefault('FASTRTPS_DEFAULT_PROFILES_FILE',
-                              str(REPO / 'config' / 'fastdds_large_shm.xml'))
+        # clouds (RESULTS.md); the README tells users to set this profile, and so do we, unless
+        # the variable is set (set and empty: Fast DDS's defaults, to see the losses)
+        if os.environ.get('FASTRTPS_DEFAULT_PROFILES_FILE') == '':
+            del os.environ['FASTRTPS_DEFAULT_PROFILES_FILE']
+        else:
+            os.environ.setdefault('FASTRTPS_DEFAULT_PROFILES_FILE',
+                                  str(REPO / 'config' / 'fastdds_large_shm.xml'))
     if not (args.latency or args.overload):
         args.latency = args.overload = True
     # this process holds the node (or publishes to it): malloc as the node's main() sets it
@@ -826,7 +838,8 @@ def main(argv=None) -> int:
             print(blocks[key] + '\n', flush=True)
         if args.overload:
             r = run_overload(msgs, args.overload_s, rate_hz=args.overload_hz,
-                             slot_period_s=args.slot_sample_ms / 1e3, executor=executor)
+                             slot_period_s=args.slot_sample_ms / 1e3, executor=executor,
+                             window=args.overload_window)
             blocks[f'overload-{executor}'] = overload_markdown(r)
             print(blocks[f'overload-{executor}'] + '\n', flush=True)
     if not args.no_write:

@@ -11,6 +11,7 @@ import math
 
 import numpy as np
 import pytest
+import scipy
 from scipy.optimize import minimize
 from scipy.stats import multivariate_normal
 
@@ -456,12 +457,21 @@ def _recorded_first_iteration(fun, x0, bounds, cap, use_scipy):
         return points, 0
 
 
+# The scipy releases whose L-BFGS-B the closed form was checked against bit for bit (its C
+# translation since 1.15). A later release may round differently by an ulp without being
+# wrong (nor is the closed form then): there the points must agree to 1e-12, relative.
+SCIPY_CHECKED_BIT_FOR_BIT = ('1.17.',)
+
+
 def _assert_same_first_iteration(fun, x0, bounds, cap):
     ref_points, ref_iterations = _recorded_first_iteration(fun, x0, bounds, cap, True)
     points, iterations = _recorded_first_iteration(fun, x0, bounds, cap, False)
     assert len(points) == len(ref_points)
     for p, q in zip(points, ref_points):
-        np.testing.assert_array_equal(p, q)  # bit for bit
+        if scipy.__version__.startswith(SCIPY_CHECKED_BIT_FOR_BIT):
+            np.testing.assert_array_equal(p, q)  # bit for bit
+        else:
+            np.testing.assert_allclose(p, q, rtol=1e-12, atol=1e-300)
     assert iterations == ref_iterations
     return len(points)
 

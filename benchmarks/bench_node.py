@@ -160,31 +160,28 @@ class NodeBench:
         with self.lock:
             self.outputs += 1
 
-    def slot_len(self) -> int:
+    def state(self, timings: bool = False) -> dict:
+        """The node's frame counts, slot occupancy and queue size (``node_state``), and every
+        frame's timings when asked: from the child over its pipe, or read here."""
         if self.child is not None:
-            return self.child.query()['slot']
-        return len(self.node._slot)  # noqa: SLF001 - read-only peek at the latest-wins slot
+            return self.child.query('timings' if timings else 'counts')
+        return node_state(self.node, timings)
+
+    def slot_len(self) -> int:
+        return self.state()['slot']
 
     @property
     def queue_size(self) -> int:
-        if self.child is not None:
-            return self.child.query()['queue_size']
-        return int(self.node._slot.maxlen)  # noqa: SLF001
+        return self.state()['queue_size']
 
     def counts(self) -> tuple:
         """The node's frames (received, processed, dropped, failed) so far."""
-        w = self.child.query() if self.child is not None else self.node.window.snapshot()
-        return tuple(w[f'frames_{k}'] for k in ('received', 'processed', 'dropped', 'failed'))
-
-    def snapshot(self) -> dict:
-        """The node's ProcessingWindow snapshot: frame counts and per-frame timings."""
-        if self.child is not None:
-            return self.child.query('timings')
-        return self.node.window.snapshot()
+        return _counts(self.state())
 
     def idle(self) -> bool:
-        received, processed, dropped, failed = self.counts()
-        return processed + dropped + failed >= received and self.slot_len() == 0
+        state = self.state()
+        received, processed, dropped, failed = _counts(state)
+        return processed + dropped + failed >= received and state['slot'] == 0
 
     def close(self):
         import rclpy
@@ -195,6 +192,23 @@ class NodeBench:
             self.child.close()
         self.peer.destroy_node()
         rclpy.try_shutdown(context=self.context)
+
+
+def node_state(node, timings: bool = False) -> dict:
+    """Frame counts of a node's ProcessingWindow, its slot occupancy and size, and (``timings``)
+    every frame's timings: what :meth:`NodeBench.state` returns (JSON-able)."""
+    snap = node.window.snapshot()
+    state = {k: snap[k] for k in ('frames_received', 'frames_processed', 'frames_dropped',
+                                  'frames_failed')}
+    # read-only peeks at the latest-wins slot
+    state.update(slot=len(node._slot), queue_size=int(node._slot.maxlen))  # noqa: SLF001
+    if timings:
+        state['timings'] = snap['timings']
+    return state
+
+
+def _counts(state: dict) -> tuple:
+    return tuple(state[f'frames_{k}'] for k in ('received', 'processed', 'dropped', 'failed'))
 
 
 def make_node(queue_size: int, diag_period_s: float, window: int, context=None):
@@ -256,14 +270,8 @@ def node_process_main(queue_size: str, diag_period_s: str, window: str) -> int:
     threading.Thread(target=executor.spin, daemon=True).start()
     print('ready', flush=True)
     for request in sys.stdin:
-        snap = node.window.snapshot()
-        reply = {k: snap[k] for k in ('frames_received', 'frames_processed', 'frames_dropped',
-                                      'frames_failed')}
-        reply.update(slot=len(node._slot), queue_size=int(node._slot.maxlen),  # noqa: SLF001
-                     rss_mb=rss_bytes()[0] / MB)
-        if request.strip() == 'timings':
-            reply['timings'] = snap['timings']
-        print(json.dumps(reply, default=float), flush=True)
+        print(json.dumps(node_state(node, request.strip() == 'timings'), default=float),
+              flush=True)
     # stdin closed: exit now (as subscriber_main: a clean shutdown under a spinning daemon
     # thread only aborts noisily)
     os._exit(0)
@@ -480,7 +488,7 @@ def run_latency(msgs: list, duration_s: float, rate_hz: float = 10.0, warmup_s: 
         t_end = time.monotonic()
         sampler.stop()
         status = last_status(bench, t_end)
-        snap = bench.snapshot()
+        snap = bench.state(timings=True)
         subscriber_counts, procs = stop_subscribers(procs), []
         warm = mark.get('warm', (0, 0, 0, 0))
         timings = snap['timings'][warm[1]:]  # window holds every frame (window >> frames)
@@ -760,8 +768,8 @@ def write_results(blocks: dict) -> None:
              'with fresh stamps, RELIABLE writer -> the node\'s best-effort subscription; default '
              'node parameters (queue_size 1). Headings saying "node in its own process" '
              '(`--node-process`): the node alone in a child process, as `ros2 run` starts it, '
-             'and this process only publishes and listens. Every process of the benchmark '
-             "sets glibc's malloc thresholds as the node's main() does "
+             'and this process only publishes and listens. This process and the node\'s child '
+             "set glibc's malloc thresholds as the node's main() does "
              '(`core/allocator.py`).', '']
     for mode in KEYS:
         if mode in previous:

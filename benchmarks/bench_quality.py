@@ -277,12 +277,17 @@ def ablation_variants() -> dict:
 def theta_stream_variants() -> dict:
     """Whole-frame theta learning in a stream (the paper's second idea), streamed mode only.
 
+    The defaults learn on the first frame and then on every ``optimizer_interval_frames``-th
+    frame (a stream shorter than that learns on its first frame only).
+
+    * every frame: ``optimizer_interval_frames`` = 1, the paper's per-frame learning;
     * first frame only: the cold start learns (``optimizer_first_frame_evaluations``), later
-      frames keep that theta -- what the per-frame evaluations add;
+      frames keep that theta -- what the later evaluations add;
     * frozen: theta never learns, not even on the first frame.
     """
     d = SegmenterParams()
-    return {'theta learned on the first frame only': d.replace(optimizer_max_evaluations=0),
+    return {'theta learned on every frame': d.replace(optimizer_interval_frames=1),
+            'theta learned on the first frame only': d.replace(optimizer_max_evaluations=0),
             'theta frozen': d.replace(optimizer_max_evaluations=0,
                                       optimizer_first_frame_evaluations=0)}
 

@@ -1023,21 +1023,34 @@ _FAMILIES = {
 FAMILY_NAMES = tuple(_FAMILIES)
 
 
+_FAMILY_DRAWS = 20  # random draws family_scene tries for one member before it gives up
+
+
 def family_scene(family: str, seed: int) -> FamilyScene:
     """Member ``seed`` of a randomised scene family (``FAMILY_NAMES``); deterministic per seed."""
     if family not in _FAMILIES:
         raise ValueError(f'family: unknown {family!r}; choose one of {", ".join(FAMILY_NAMES)}')
-    rng = np.random.default_rng([seed, FAMILY_NAMES.index(family)])
-    if family == 'mount_height':
-        h, obs, group, extra, text = _family_mount_height(rng, seed)
-    elif family.startswith('beams'):
-        h, obs, group, extra, text = _family_beams(rng, int(family[5:]))
-    else:
-        h, obs, group, extra, text = _FAMILIES[family](rng)
-    extra = dict(extra)
-    clearance = extra.pop('clearance', 1.5)
-    scene = Scene(f'{family}_{seed}', h, tuple(obs), text)
-    scene.check(clearance)
+    index = FAMILY_NAMES.index(family)
+    # A random draw may put an obstacle on the sensor (indoor seed 4 did): draw again from a
+    # stream of its own. The first draw's stream is the seed's, so members that never failed
+    # keep their scene.
+    for attempt in range(_FAMILY_DRAWS):
+        rng = np.random.default_rng([seed, index] + ([attempt] if attempt else []))
+        if family == 'mount_height':
+            h, obs, group, extra, text = _family_mount_height(rng, seed)
+        elif family.startswith('beams'):
+            h, obs, group, extra, text = _family_beams(rng, int(family[5:]))
+        else:
+            h, obs, group, extra, text = _FAMILIES[family](rng)
+        extra = dict(extra)
+        clearance = extra.pop('clearance', 1.5)
+        scene = Scene(f'{family}_{seed}', h, tuple(obs), text)
+        try:
+            scene.check(clearance)
+            break
+        except ValueError:
+            if attempt == _FAMILY_DRAWS - 1:
+                raise
     kwargs = {'azimuth_steps': FAMILY_AZIMUTH_STEPS, **extra}
     return FamilyScene(scene, kwargs, group, kwargs.get('sensor_height_m', 1.73), text)
 

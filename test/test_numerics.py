@@ -38,6 +38,8 @@ WIDE = dict(sigma_f_min_m=SIGMA_F[0], sigma_f_max_m=SIGMA_F[1],
             sigma_n_min_m=SIGMA_N[0], sigma_n_max_m=SIGMA_N[1],
             min_length_factor=1e-4, max_length_factor=1e5, slope_floor=1e-6,
             slope_ceiling=0.999)
+# theta learned on every frame (the defaults skip the frames between optimizer_interval_frames)
+LEARN_EVERY_FRAME = SegmenterParams(optimizer_interval_frames=1)
 
 
 # --------------------------------------------------------------------------------------------
@@ -332,7 +334,7 @@ def _fails(kind):
                                   ValueError, RuntimeError],
                          ids=lambda k: k if isinstance(k, str) else k.__name__)
 def test_failed_optimisation_keeps_last_good_theta(ramp_points, monkeypatch, kind):
-    seg = GroundSegmenter()
+    seg = GroundSegmenter(LEARN_EVERY_FRAME)  # the second frame learns
     good = seg.segment(ramp_points)
     assert good.stats['optimizer_failures'] == 0
     theta = seg.hyperparameters
@@ -349,7 +351,7 @@ def test_failed_optimisation_keeps_last_good_theta(ramp_points, monkeypatch, kin
 
 def test_diverging_optimisation_keeps_last_good_theta(ramp_points, monkeypatch):
     """Sane at the start point, NaN/+inf likelihood anywhere else: theta must not move."""
-    seg = GroundSegmenter()
+    seg = GroundSegmenter(LEARN_EVERY_FRAME)  # the second frame learns
     seg.segment(ramp_points)
     theta = seg.hyperparameters
     real = FrameGP.lml_and_gradient
@@ -389,7 +391,8 @@ def test_fallbacks_and_optimizer_failures_reach_node_diagnostics(ramp_points, mo
     from gp_ground_segmentation.ros.cloud import make_cloud
 
     h = ros_harness(node_kwargs={'parameter_overrides': [
-        Parameter('diagnostics_period_s', value=0.2)]})
+        Parameter('diagnostics_period_s', value=0.2),
+        Parameter('optimizer_interval_frames', value=1)]})  # the second frame learns
 
     def frame(sec):
         header = Header(frame_id='crafted')

@@ -235,7 +235,7 @@ def test_timings_and_stats_are_reported(scans):
 
 
 def test_theta_is_learned_and_warm_started(scans):
-    seg = GroundSegmenter()
+    seg = GroundSegmenter(SegmenterParams(optimizer_interval_frames=1))  # learn every frame
     start = seg.hyperparameters
     seg.segment(scans['ramp15'].points)
     learned = seg.hyperparameters
@@ -249,6 +249,27 @@ def test_theta_is_learned_and_warm_started(scans):
     assert second.stats['optimizer_iterations'] <= second.stats['optimizer_evaluations']
     seg.reset()
     assert seg.hyperparameters == start
+
+
+def test_theta_learned_on_every_interval_th_frame(scans):
+    """optimizer_interval_frames: the first frame learns, then every k-th; the frames between
+    spend no evaluation and keep theta; reset() starts the count again."""
+    seg = GroundSegmenter(SegmenterParams(optimizer_interval_frames=3))
+    points = scans['ramp15'].points
+    learned, evaluations = [], []
+    for _ in range(7):
+        before = seg.hyperparameters
+        result = seg.segment(points)
+        evaluations.append(result.stats['optimizer_evaluations'])
+        learned.append(seg.hyperparameters != before)
+        assert result.hyperparameters == seg.hyperparameters
+    assert evaluations[0] > seg.params.optimizer_max_evaluations  # the cold start's budget
+    assert [e > 0 for e in evaluations] == [True, False, False, True, False, False, True]
+    assert not any(learned[i] for i in (1, 2, 4, 5))  # kept between the learning frames
+    assert learned[0]
+    seg.reset()
+    assert seg.segment(points).stats['optimizer_evaluations'] > 0
+    assert seg.segment(points).stats['optimizer_evaluations'] == 0
 
 
 def test_frozen_theta_when_learning_disabled(scans):

@@ -14,7 +14,8 @@ marks the paper's steps, [ours] our additions (``additions.py``, each with a ``u
              one-point lines take the slope of the chord from the previous candidate
              (``use_chord_slope_for_single_points``), so walls are steep, not flat.
 ``gp_fit``   [paper] length scales from slope and rho~, theta learned on the whole-frame
-             marginal likelihood (eq. 14; warm-started and capped: ours).
+             marginal likelihood (eq. 14; warm-started, capped, and after the first frame
+             only on every ``optimizer_interval_frames``-th frame: ours).
              [ours] the ground under the vehicle as a shared training point at r = 0
              (``use_anchor``), also the GP prior mean (``prior_mean_at_anchor``);
              leave-one-out rejection of outlier candidates before and after learning
@@ -447,6 +448,7 @@ class GroundSegmenter:
                                               p.sigma_n_init_m)
         self._theta = self._clip_theta(hyperparameters)
         self._has_learned = False
+        self._frames_since_learning = 0  # frames segmented since theta last learned
 
     @property
     def params(self) -> SegmenterParams:
@@ -527,6 +529,7 @@ class GroundSegmenter:
         p = self._params
         self._theta = Hyperparameters(p.sigma_f_init_m, p.length_scale_gain_init, p.sigma_n_init_m)
         self._has_learned = False
+        self._frames_since_learning = 0
 
     def _bounds(self):
         p = self._params
@@ -539,11 +542,14 @@ class GroundSegmenter:
         return Hyperparameters(*(float(v) for v in np.clip(np.asarray(theta, float), lo, hi)))
 
     def _learning_budget_and_bounds(self, theta):
-        """Evaluation cap and bounds of this frame's theta search (a trust region once learned)."""
+        """Evaluation cap and bounds of this frame's theta search (a trust region once learned;
+        no evaluation between the learning frames of ``optimizer_interval_frames``)."""
         p = self._params
         bounds = self._bounds()
         if not self._has_learned:
             return p.optimizer_first_frame_evaluations, bounds
+        if self._frames_since_learning + 1 < p.optimizer_interval_frames:
+            return 0, bounds
         ratio = p.optimizer_max_step_ratio  # theta moves at most x/÷ ratio a frame
         return p.optimizer_max_evaluations, [(max(lo, t / ratio), min(hi, t * ratio))
                                              for t, (lo, hi) in zip(theta, bounds)]
@@ -635,6 +641,9 @@ class GroundSegmenter:
                      optimizer_failures=int(info['failed']))
         if evaluations > 0 and not info['failed']:
             self._has_learned = True
+            self._frames_since_learning = 0
+        else:
+            self._frames_since_learning += 1
         # np.allclose's test (rtol 1e-5, atol 1e-8) on the three floats, without its ~20 us
         # of array set-up
         if not all(a == b or abs(a - b) <= 1e-8 + 1e-5 * abs(b)

@@ -45,7 +45,7 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 from gp_ground_segmentation.tools.evaluation import (  # noqa: E402
-    RELLIS_3D, ground_truth_from_labels, truth_metrics)
+    RELLIS_3D, ground_truth_from_labels, pooled_metrics, truth_metrics)
 
 
 def _find_data_dir() -> Path:
@@ -395,17 +395,8 @@ def score(pred_ground: np.ndarray, frame: Frame) -> Optional[dict]:
 
 
 def pool(metrics: list) -> Optional[dict]:
-    """Pool per-frame metrics (sum TP/FP/FN) into one precision/recall/F1."""
-    metrics = [m for m in metrics if m is not None]
-    if not metrics:
-        return None
-    tp = sum(m['tp'] for m in metrics)
-    fp = sum(m['fp'] for m in metrics)
-    fn = sum(m['fn'] for m in metrics)
-    p = tp / (tp + fp) if tp + fp else float('nan')
-    r = tp / (tp + fn) if tp + fn else float('nan')
-    f1 = 2 * p * r / (p + r) if tp else (0.0 if fp + fn else float('nan'))
-    return {'precision': p, 'recall': r, 'f1': f1, 'tp': tp, 'fp': fp, 'fn': fn}
+    """Pool per-frame metrics (sum TP/FP/FN) into one precision/recall/F1 (None if none)."""
+    return pooled_metrics(metrics)
 
 
 # ------------------------------------------------------------------------------------ timing

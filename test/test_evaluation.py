@@ -8,7 +8,7 @@ import pytest
 
 from gp_ground_segmentation.tools.evaluation import (
     GROUND_CLASSES, IGNORED_CLASSES, RELLIS_3D, ground_metrics, ground_truth_from_labels,
-    truth_metrics)
+    pooled_metrics, truth_metrics)
 
 
 def test_truth_metrics_hand_computed():
@@ -22,6 +22,18 @@ def test_truth_metrics_hand_computed():
     assert m['precision'] == pytest.approx(3 / 5)
     assert m['recall'] == pytest.approx(3 / 4)
     assert m['f1'] == pytest.approx(2 * 0.6 * 0.75 / 1.35)
+
+
+def test_pooled_metrics_sum_the_counts():
+    # frames: (TP 3, FP 2, FN 1, TN 4) and (TP 1, FP 0, FN 3, no TN) -> TP 4, FP 2, FN 4, TN 4
+    frames = [{'tp': 3, 'fp': 2, 'fn': 1, 'tn': 4}, None, {'tp': 1, 'fp': 0, 'fn': 3}]
+    m = pooled_metrics(frames)
+    assert (m['tp'], m['fp'], m['fn'], m['tn']) == (4, 2, 4, 4)
+    assert m['precision'] == pytest.approx(4 / 6) and m['recall'] == pytest.approx(4 / 8)
+    assert m['f1'] == pytest.approx(2 * 4 / (2 * 4 + 2 + 4))
+    assert pooled_metrics([]) is None and pooled_metrics([None]) is None
+    assert pooled_metrics([{'tp': 0, 'fp': 2, 'fn': 0}])['f1'] == 0.0  # a call, not one hit
+    assert math.isnan(pooled_metrics([{'tp': 0, 'fp': 0, 'fn': 0, 'tn': 5}])['f1'])
 
 
 def test_truth_metrics_evaluated_mask_drops_points():

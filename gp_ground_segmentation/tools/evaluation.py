@@ -84,10 +84,19 @@ def truth_metrics(pred_ground_mask: np.ndarray, truth_ground_mask: np.ndarray,
         if keep.shape != pred.shape:
             raise ValueError(f'evaluated mask has {keep.size} points, expected {pred.size}')
         pred, truth = pred[keep], truth[keep]
-    tp = int(np.count_nonzero(pred & truth))
-    fp = int(np.count_nonzero(pred & ~truth))
-    fn = int(np.count_nonzero(~pred & truth))
-    tn = int(np.count_nonzero(~pred & ~truth))
+    counts = metrics_from_counts(int(np.count_nonzero(pred & truth)),
+                                 int(np.count_nonzero(pred & ~truth)),
+                                 int(np.count_nonzero(~pred & truth)),
+                                 int(np.count_nonzero(~pred & ~truth)))
+    return dict(counts, evaluated_points=int(pred.size))
+
+
+def metrics_from_counts(tp: int, fp: int, fn: int, tn: int = 0) -> dict:
+    """Precision, recall and F1 of *ground* from the counts (module docstring), with the counts.
+
+    A ratio whose denominator is zero is NaN; F1 is 0 when there was ground or a ground call
+    and not one hit, NaN when there was neither.
+    """
     precision = tp / (tp + fp) if tp + fp else float('nan')
     recall = tp / (tp + fn) if tp + fn else float('nan')
     if np.isfinite(precision) and np.isfinite(recall) and precision + recall > 0:
@@ -97,7 +106,17 @@ def truth_metrics(pred_ground_mask: np.ndarray, truth_ground_mask: np.ndarray,
     else:
         f1 = float('nan')
     return {'precision': precision, 'recall': recall, 'f1': f1, 'tp': tp, 'fp': fp, 'fn': fn,
-            'tn': tn, 'evaluated_points': int(pred.size)}
+            'tn': tn}
+
+
+def pooled_metrics(counts) -> dict | None:
+    """:func:`metrics_from_counts` of the summed counts of several frames (dicts with ``tp``,
+    ``fp``, ``fn`` and optionally ``tn``; None entries skipped); None when there is none."""
+    counts = [c for c in counts if c is not None]
+    if not counts:
+        return None
+    return metrics_from_counts(*(sum(c.get(k, 0) for c in counts)
+                                 for k in ('tp', 'fp', 'fn', 'tn')))
 
 
 def ground_metrics(pred_ground_mask: np.ndarray, semantic_labels: np.ndarray,

@@ -156,10 +156,10 @@ def evaluate(values: dict, frames: Sequence[LabelledFrame]) -> list:
 
 
 def pooled_f1(counts: Sequence[dict]) -> float:
-    tp = sum(c['tp'] for c in counts)
-    fp = sum(c['fp'] for c in counts)
-    fn = sum(c['fn'] for c in counts)
-    return 2 * tp / (2 * tp + fp + fn) if tp + fp + fn else float('nan')
+    """F1 of the summed counts of several frames (``evaluation.pooled_metrics``); NaN if none."""
+    from .evaluation import pooled_metrics
+    pooled = pooled_metrics(counts)
+    return pooled['f1'] if pooled else float('nan')
 
 
 # ---------------------------------------------------------------------------------------------

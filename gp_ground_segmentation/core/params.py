@@ -143,7 +143,8 @@ class SegmenterParams:
         'warm-started from the current theta; 0 keeps the first frame\'s theta', 0, 1000)
     optimizer_max_step_ratio: float = _param(
         1.5, 'after the first frame each hyperparameter may change by at most this factor per '
-        'frame (a trust region: one odd frame cannot throw theta to its bounds)', 1.01, 1e6)
+        'learning frame (a trust region: one odd frame cannot throw theta to its bounds)',
+        1.01, 1e6)
     optimizer_first_frame_evaluations: int = _param(
         40, 'the same cap for the first frame (cold start)', 0, 10000)
     optimizer_interval_frames: int = _param(

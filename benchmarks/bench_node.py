@@ -77,9 +77,10 @@ STAGES = ('decode', 'segment', 'encode', 'total')
 # With --subscribers: also the node's own stages and two sums (per frame, then percentiles):
 # around = handoff + total - segment (decode, encode including the surface cloud, and the input
 # checks), i.e. everything the node adds to segment() before publishing; node_total = handoff +
-# total + publish (subscription callback to published).
+# total + publish (subscription callback to published); ground_published: the node's own
+# measure from the callback to ground and obstacles published (before the surface cloud).
 LOAD_STAGES = ('handoff', 'decode', 'segment', 'encode', 'surface', 'publish', 'around',
-               'around_without_surface', 'total', 'node_total')
+               'around_without_surface', 'total', 'node_total', 'ground_published')
 MB = 1024.0 * 1024.0
 
 
@@ -681,7 +682,9 @@ def load_markdown(r: dict) -> str:
         'surface (its part of encode), publish (the three publish calls); total = decode + '
         'segment + encode + input checks (process_cloud); around = handoff + total - segment '
         '(everything around segment() but the publish calls); around_without_surface = around - '
-        'surface; node_total = handoff + total + publish. Per-frame sums, then percentiles.',
+        'surface; node_total = handoff + total + publish; ground_published = the node\'s own '
+        'callback-to-published time of ground and obstacles, which it publishes before it '
+        'builds the surface cloud. Per-frame sums, then percentiles.',
         '',
         markdown_table(['stage', 'ms median', 'ms p95', 'ms max', 'frames'], rows),
         '',

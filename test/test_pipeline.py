@@ -15,7 +15,8 @@ from std_msgs.msg import Header
 from gp_ground_segmentation import GroundSegmenter, SegmenterParams
 from gp_ground_segmentation.ros.cloud import CloudFormatError, make_cloud, point_rows
 from gp_ground_segmentation.ros.diagnostics import ProcessingWindow, diagnostics_status
-from gp_ground_segmentation.ros.pipeline import STAGES, FrameOutput, frame_timings, process_cloud
+from gp_ground_segmentation.ros.pipeline import (STAGES, FrameOutput, add_surface, frame_timings,
+                                                 process_cloud)
 from gp_ground_segmentation.core.segmenter import Hyperparameters, SegmentationResult
 
 
@@ -82,6 +83,26 @@ def test_partition_with_extra_fields_padding_and_invalid_rows(big):
     assert out.result.num_invalid == int((~np.isfinite(xyz).all(1) | (xyz == 0).all(1)).sum())
     assert out.ground.width > 0 and out.obstacles.width > 0
     assert out.decode_ms >= 0 and out.encode_ms >= 0 and out.total_ms >= out.decode_ms
+
+
+def test_surface_added_after_the_split_is_the_eager_one():
+    """The node publishes ground and obstacles, then builds the surface cloud (add_surface):
+    the same bytes as process_cloud's own, and its time joins encode and total."""
+    msg = _msg(_structured(_scene(seed=5)))
+    eager = process_cloud(msg, GroundSegmenter(), publish_ground_surface=True)
+    late = process_cloud(msg, GroundSegmenter(), publish_ground_surface=False)
+    assert late.surface is None and np.isnan(late.surface_ms)
+    encode, total = late.encode_ms, late.total_ms
+    assert add_surface(late, msg) is late
+    assert late.surface.width == eager.surface.width > 0
+    assert bytes(late.surface.data) == bytes(eager.surface.data)
+    assert late.surface.header.stamp == msg.header.stamp
+    assert late.surface_ms >= 0
+    assert late.encode_ms == encode + late.surface_ms and late.total_ms == total + late.surface_ms
+    before = late.surface
+    add_surface(late, msg)  # built already: nothing changes
+    assert late.surface is before and late.total_ms == total + late.surface_ms
+    assert frame_timings(late)['surface'] == late.surface_ms
 
 
 def test_organized_cloud_with_row_padding():

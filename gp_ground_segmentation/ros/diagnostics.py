@@ -117,7 +117,8 @@ class ProcessingWindow:
         """A frame was processed successfully and its outputs published. ``warnings``: one-line
         notes on its input (default ``out.warnings``); they make the status WARN until the next
         frame. ``node_timings``: stage -> ms measured outside the pipeline (the node's
-        ``handoff`` and ``publish``), kept with the frame's pipeline timings."""
+        ``handoff``, ``publish`` and ``ground_published``), kept with the frame's pipeline
+        timings."""
         if warnings is None:
             warnings = list(getattr(out, 'warnings', None) or [])
         res = out.result

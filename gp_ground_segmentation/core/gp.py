@@ -550,7 +550,7 @@ class FrameGP:
             if cached_key == key:  # L-BFGS-B re-evaluates its start and end points
                 return cached
         self.factorisations += 1
-        sol = self._solve_compiled(theta) if self.backend == 'numba' else None
+        sol = self._solve_compiled(theta, key) if self.backend == 'numba' else None
         if sol is None:
             sol = self._solve_numpy(theta)
         self._cache = self._cache[1 - _CACHED_SOLUTIONS:] + [(key, sol)]
@@ -560,12 +560,13 @@ class FrameGP:
         return -0.5 * (float(np.einsum('si,si->', self.z, alpha)) + logdet
                        + self.num_points * LOG_2PI)
 
-    def _solve_compiled(self, theta) -> Optional[GPSolution]:
-        """The whole step in numba; None when a matrix is not PD or numba fails (then numpy)."""
+    def _solve_compiled(self, theta, key: bytes) -> Optional[GPSolution]:
+        """The whole step in numba (``key``: theta's bytes, as :meth:`solve` caches it); None
+        when a matrix is not PD or numba fails (then numpy)."""
         args = (self.r, self.d, self.z, self.noise_var, self.counts,
                 *(float(t) for t in theta))
         known_solutions, changed = self._known if self._known is not None else ([], None)
-        known = next((sol for key, sol in known_solutions if key == theta.tobytes()), None)
+        known = next((sol for known_key, sol in known_solutions if known_key == key), None)
         try:
             if known is not None:
                 ok, logdets, alpha, a_inv, gradient, *pair_terms = gp_compiled.resolve_batched(

@@ -447,8 +447,9 @@ class GroundSegmenter:
             hyperparameters = Hyperparameters(p.sigma_f_init_m, p.length_scale_gain_init,
                                               p.sigma_n_init_m)
         self._theta = self._clip_theta(hyperparameters)
-        self._has_learned = False
-        self._frames_since_learning = 0  # frames segmented since theta last learned
+        # frames segmented since theta last learned; None until it has learned once (then the
+        # next frame is a cold start with optimizer_first_frame_evaluations)
+        self._frames_since_learning: int | None = None
 
     @property
     def params(self) -> SegmenterParams:
@@ -528,8 +529,7 @@ class GroundSegmenter:
         """Forget the learned theta: the next frame is a cold start."""
         p = self._params
         self._theta = Hyperparameters(p.sigma_f_init_m, p.length_scale_gain_init, p.sigma_n_init_m)
-        self._has_learned = False
-        self._frames_since_learning = 0
+        self._frames_since_learning = None
 
     def _bounds(self):
         p = self._params
@@ -546,7 +546,7 @@ class GroundSegmenter:
         no evaluation between the learning frames of ``optimizer_interval_frames``)."""
         p = self._params
         bounds = self._bounds()
-        if not self._has_learned:
+        if self._frames_since_learning is None:
             return p.optimizer_first_frame_evaluations, bounds
         if self._frames_since_learning + 1 < p.optimizer_interval_frames:
             return 0, bounds
@@ -640,9 +640,8 @@ class GroundSegmenter:
                      optimizer_iterations=info['iterations'],
                      optimizer_failures=int(info['failed']))
         if evaluations > 0 and not info['failed']:
-            self._has_learned = True
             self._frames_since_learning = 0
-        else:
+        elif self._frames_since_learning is not None:
             self._frames_since_learning += 1
         # np.allclose's test (rtol 1e-5, atol 1e-8) on the three floats, without its ~20 us
         # of array set-up

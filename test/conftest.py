@@ -166,14 +166,24 @@ class RosHarness:
 
     def publish_and_wait(self, msg, timeout=30.0):
         """Publish ``msg`` and wait for both outputs with its stamp (one re-publish if the
-        best-effort link lost it)."""
+        best-effort link lost it), then for the node to have recorded the frame: it publishes
+        ground and obstacles before it builds the surface cloud and counts the frame, so a
+        caller reading the node's counts right after the outputs could miss this frame."""
         self.pub.publish(msg)
         out = wait_for(lambda: self.outputs_for(msg.header.stamp), timeout / 2)
         if out is None and self.node.window.frames_received == 0:
             self.pub.publish(msg)
             out = wait_for(lambda: self.outputs_for(msg.header.stamp), timeout / 2)
         assert out is not None, 'no ground/obstacles output received for the frame'
+        assert wait_for(self.node_settled, timeout / 2), 'the node never recorded the frame'
         return out
+
+    def node_settled(self) -> bool:
+        """Every frame the node received is recorded (processed, dropped or failed) and none
+        waits in its slot."""
+        w = self.node.window
+        return (w.frames_processed + w.frames_dropped + w.frames_failed >= w.frames_received
+                and not self.node._slot)  # noqa: SLF001 - read-only peek at the slot
 
     def statuses(self):
         with self.lock:

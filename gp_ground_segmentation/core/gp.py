@@ -307,7 +307,7 @@ class GPSolution:
     kernel: Optional[np.ndarray]  # (S, n, n) K at theta (padded slots 0); None when compiled
     gradient: Optional[np.ndarray] = None  # (3,) dJ/dlog(theta) when the solver gave it
     logdets: Optional[np.ndarray] = None  # (S,) log|A| of each segment when compiled
-    pair_terms: tuple = ()  # compiled: (K, q) (S, n, n), see gp_compiled._solve_batched
+    pair_terms: tuple = ()  # compiled: (K, q) (S, n, n), see gp_compiled.solve_batched
 
 
 @dataclass(frozen=True)

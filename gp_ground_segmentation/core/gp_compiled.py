@@ -7,13 +7,15 @@ reference (``gp.FrameGP`` with backend 'numpy') pads every segment to the larges
 16-beam scan most segments hold a handful of training points, so nearly all of that work is
 padding. Here each segment is processed at its own size n_s, in one pass that builds K from
 (r, d), factorises A = K + diag(noise), inverts it and accumulates log|A|, alpha = A^-1 z and
-the three gradient terms, without a Python-level temporary. The functions release the GIL
+the three gradient terms, without a Python-level temporary. The compiled functions
+(``_resolve_into``, ``_predict_into``, ``_std_into``) fill arrays that the Python functions of
+the same names without ``_into`` allocate (see ``_resolve_into`` for why), and release the GIL
 (``nogil``) so that a ROS executor thread keeps running while a frame is solved.
 
 The outputs equal the numpy reference to round-off (test/test_gp.py): padded slots hold what
 numpy's identity rows give (A^-1 = I there, alpha = 0, K = 0).
 
-First call of a process: numba compiles these functions (about 1-3 s) or loads them from its
+First call of a process: numba compiles these functions (about 1-2 s) or loads them from its
 on-disk cache (``cache=True``: ``__pycache__`` next to this file when that is writable, else
 numba's user cache directory; ``NUMBA_CACHE_DIR`` overrides both). The cache is filled by the
 first process that calls them, e.g. ``GroundSegmenter().warm_up()`` (the node does that at
@@ -27,7 +29,7 @@ import numpy as np
 from .compiled import AVAILABLE, kernel  # numba (cached, nogil) when it imports
 
 
-def _solve_batched(r, d, z, noise_var, counts, sigma_f, gain, sigma_n):
+def solve_batched(r, d, z, noise_var, counts, sigma_f, gain, sigma_n):
     """Factorise A_s = K_s + diag(sigma_n^2 + noise_var) of every segment s at theta.
 
     r, d, z, noise_var: (S, n) padded training data, the first ``counts[s]`` slots of row s
@@ -35,7 +37,7 @@ def _solve_batched(r, d, z, noise_var, counts, sigma_f, gain, sigma_n):
     kernel (S, n, n), q (S, n, n)) where ``gradient`` is dJ/dlog(sigma_f, a, sigma_n) summed
     over the segments: 1/2 tr((alpha alpha^T - A^-1) dA/dlog theta); ``kernel`` and ``q`` hold
     K and (r_i - r_j)^2 / (d_i^2 + d_j^2) of each segment in their first counts[s] rows and
-    columns (the rest is not written) for :func:`_resolve_batched`. ``ok[s]`` is False
+    columns (the rest is not written) for :func:`resolve_batched`. ``ok[s]`` is False
     when Cholesky meets a non-positive pivot; then that segment's outputs are meaningless and
     the caller falls back to jittered numpy.
     """
@@ -45,26 +47,55 @@ def _solve_batched(r, d, z, noise_var, counts, sigma_f, gain, sigma_n):
                            nothing, nothing, nothing)  # every segment changed: nothing known
 
 
-def _resolve_batched(r, d, z, noise_var, counts, sigma_f, gain, sigma_n, changed,
-                     known_logdet, known_alpha, known_a_inv, known_kernel, known_q):
-    """:func:`_solve_batched` when a solution at this theta of the same data with another
+def resolve_batched(r, d, z, noise_var, counts, sigma_f, gain, sigma_n, changed,
+                    known_logdet, known_alpha, known_a_inv, known_kernel, known_q):
+    """:func:`solve_batched` when a solution at this theta of the same data with another
     noise in the ``changed`` (S,) segments is known: its K and q (independent of the noise)
     are used as they are and returned, and the log|A|, alpha and A^-1 of the unchanged
     segments are copied. The gradient terms are still summed over every segment in the same
-    order, so the outputs are those of :func:`_solve_batched` bit for bit; the kernel and the
+    order, so the outputs are those of :func:`solve_batched` bit for bit; the kernel and the
     Cholesky factorisation and inverse (the O(n^3) part) run only where needed. With empty
     ``known_kernel`` and ``known_q`` (0, 0, 0), K and q are computed.
     """
     s_count, n = r.shape
-    logdet = np.zeros(s_count)
-    alpha = np.zeros((s_count, n))
-    a_inv = np.zeros((s_count, n, n))
-    ok = np.ones(s_count, dtype=np.bool_)
     kernel_known = known_kernel.shape[0] > 0
-    kernel = known_kernel if kernel_known else np.empty((s_count, n, n))
-    q_all = known_q if kernel_known else np.empty((s_count, n, n))
-    lower = np.zeros((n, n))
-    inv_lower = np.zeros((n, n))
+    outputs = (np.empty(s_count, dtype=np.bool_), np.empty(s_count), np.empty((s_count, n)),
+               np.empty((s_count, n, n)), np.empty(3),
+               known_kernel if kernel_known else np.empty((s_count, n, n)),
+               known_q if kernel_known else np.empty((s_count, n, n)))
+    _resolve_into(r, d, z, noise_var, counts, sigma_f, gain, sigma_n, changed, known_logdet,
+                  known_alpha, known_a_inv, kernel_known, np.empty((2, n, n)), *outputs)
+    return outputs
+
+
+def _resolve_into(r, d, z, noise_var, counts, sigma_f, gain, sigma_n, changed,
+                  known_logdet, known_alpha, known_a_inv, kernel_known, work,
+                  ok, logdet, alpha, a_inv, gradient, kernel, q_all):
+    """The loops of :func:`resolve_batched` (compiled with numba), writing into its arrays
+    (allocated, not initialised): ``ok``, ``logdet``, ``alpha``, ``a_inv``, ``gradient`` (3,),
+    ``kernel`` and ``q_all`` (S, n, n) (the known ones when ``kernel_known``), ``work`` (2, n, n).
+
+    No array is allocated here: numba compiles its np.zeros / np.empty / np.array for every
+    number of dimensions on first use in a process, ~0.9 s of a new install's first frame
+    (the compiled code is cached on disk with the kernel, so only the first run pays). The
+    arrays are zeroed here rather than by np.zeros (numpy's calloc hands large arrays fresh
+    pages that fault on first write: +5 % on a KITTI frame's GP step), with element loops
+    (a helper over a flat view compiled reshape for every number of dimensions: +0.45 s).
+    """
+    s_count, n = r.shape
+    for i in range(n):  # zeroed with element loops: see above
+        for j in range(n):
+            work[0, i, j] = 0.0
+            work[1, i, j] = 0.0
+    for s in range(s_count):
+        ok[s] = True
+        logdet[s] = 0.0
+        for i in range(n):
+            alpha[s, i] = 0.0
+            for j in range(n):
+                a_inv[s, i, j] = 0.0
+    lower = work[0]
+    inv_lower = work[1]
     sf2 = sigma_f * sigma_f
     inv_gain2 = 1.0 / (gain * gain)
     sn2 = sigma_n * sigma_n
@@ -139,28 +170,40 @@ def _resolve_batched(r, d, z, noise_var, counts, sigma_f, gain, sigma_n, changed
                 g_sf += wk
                 g_gain += wk * q[i, j]
             g_sn += ai * ai - ainv[i, i]
-    gradient = np.array([g_sf, g_gain * inv_gain2, g_sn * sn2])
-    return ok, logdet, alpha, a_inv, gradient, kernel, q_all
+    gradient[0] = g_sf
+    gradient[1] = g_gain * inv_gain2
+    gradient[2] = g_sn * sn2
 
 
-def _std_batched(counts, a_inv, k_star, sigma_f):
-    """Posterior std sqrt(sigma_f^2 - k*^T A^-1 k*) from the (S, n, k) k* of _predict_batched.
+def std_batched(counts, a_inv, k_star, sigma_f):
+    """Posterior std sqrt(sigma_f^2 - k*^T A^-1 k*) (S, k) from the (S, n, k) k* of
+    :func:`predict_batched`."""
+    s_count, _, k_count = k_star.shape
+    std = np.empty((s_count, k_count))
+    _std_into(counts, a_inv, k_star, sigma_f, std, np.empty((2, k_count)))
+    return std
+
+
+def _std_into(counts, a_inv, k_star, sigma_f, std, work):
+    """The loops of :func:`std_batched` (compiled), into ``std`` (S, k) with ``work`` (2, k)
+    (neither initialised).
 
     All k prediction points of a segment are accumulated at once (innermost loop over them,
     which the compiler vectorises); each point's sums still run in the order of a one point
     at a time loop.
     """
     s_count, _, k_count = k_star.shape
-    std = np.zeros((s_count, k_count))
-    w = np.zeros(k_count)  # (A^-1 k*)_i of every prediction point
-    reduce = np.zeros(k_count)  # k*^T A^-1 k* of every prediction point
+    w = work[0]  # (A^-1 k*)_i of every prediction point
+    reduce = work[1]  # k*^T A^-1 k* of every prediction point
     sf2 = sigma_f * sigma_f
     for s in range(s_count):
         m = counts[s]
         ks = k_star[s]
-        reduce[:] = 0.0
+        for c in range(k_count):
+            reduce[c] = 0.0
         for i in range(m):
-            w[:] = 0.0
+            for c in range(k_count):
+                w[c] = 0.0
             for j in range(m):
                 a = a_inv[s, i, j]
                 for c in range(k_count):
@@ -168,19 +211,33 @@ def _std_batched(counts, a_inv, k_star, sigma_f):
             for c in range(k_count):
                 reduce[c] += ks[i, c] * w[c]
         for c in range(k_count):
-            std[s, c] = np.sqrt(max(sf2 - reduce[c], 0.0))  # clamp round-off negatives
-    return std
+            v = sf2 - reduce[c]
+            std[s, c] = np.sqrt(v if v > 0.0 else 0.0)  # clamp round-off negatives
 
 
-def _predict_batched(r, d, counts, alpha, a_inv, r_star, d_star, sigma_f, gain, with_std):
+def predict_batched(r, d, counts, alpha, a_inv, r_star, d_star, sigma_f, gain, with_std):
     """Posterior mean (minus the prior mean) and std at r_star, d_star (S, k) of every segment,
     and k* (S, n, k) [segment, training point, prediction point] for a later std_batched.
 
     std is all zeros when ``with_std`` is False.
     """
     s_count, k_count = r_star.shape
-    mean = np.zeros((s_count, k_count))
-    k_star = np.zeros((s_count, r.shape[1], k_count))
+    outputs = (np.empty((s_count, k_count)), np.empty((s_count, k_count)),
+               np.empty((s_count, r.shape[1], k_count)))
+    _predict_into(r, d, counts, alpha, a_inv, r_star, d_star, sigma_f, gain, with_std,
+                  np.empty((2, k_count)), *outputs)
+    return outputs
+
+
+def _predict_into(r, d, counts, alpha, a_inv, r_star, d_star, sigma_f, gain, with_std, work,
+                  mean, std, k_star):
+    """The loops of :func:`predict_batched` (compiled), into ``mean``, ``std`` (S, k) and
+    ``k_star`` (S, n, k), none initialised; ``work`` (2, k) for :func:`_std_into`."""
+    s_count, k_count = r_star.shape
+    for s in range(s_count):  # padded slots stay 0
+        for j in range(k_star.shape[1]):
+            for c in range(k_count):
+                k_star[s, j, c] = 0.0
     sf2 = sigma_f * sigma_f
     for s in range(s_count):
         m = counts[s]
@@ -196,22 +253,17 @@ def _predict_batched(r, d, counts, alpha, a_inv, r_star, d_star, sigma_f, gain, 
                 v += kj * alpha[s, j]
             mean[s, c] = v
     if with_std:
-        std = std_batched(counts, a_inv, k_star, sigma_f)
+        _std_into(counts, a_inv, k_star, sigma_f, std, work)
     else:
-        std = np.zeros((s_count, k_count))
-    return mean, std, k_star
+        for s in range(s_count):
+            for c in range(k_count):
+                std[s, c] = 0.0
 
 
-# solve_batched stays Python: one compiled function for both entry points (compiling a
-# second one that only calls the first doubled numba's work on a new install)
-solve_batched = _solve_batched
 if AVAILABLE:
-    resolve_batched = kernel(_resolve_batched)
-    std_batched = kernel(_std_batched)  # before predict: it calls it
-    predict_batched = kernel(_predict_batched)
-else:  # pragma: no cover - the numpy backend is used instead; these are never called
-    resolve_batched = _resolve_batched
-    std_batched, predict_batched = _std_batched, _predict_batched
+    _resolve_into = kernel(_resolve_into)
+    _std_into = kernel(_std_into)  # before _predict_into: it calls it
+    _predict_into = kernel(_predict_into)
 
 
 def warm_up() -> None:

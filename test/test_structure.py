@@ -187,7 +187,7 @@ def test_compiled_pass_equals_the_numpy_reference_on_a_real_scan(dtype):
 @pytest.mark.parametrize('dtype', [np.float32, np.float64])
 def test_compiled_selection_equals_the_numpy_reference(dtype):
     """Column points and candidates within the range limit: the compiled pass returns the
-    reference's points (indices, coordinates, ranges), with heights and ranges exactly at the
+    reference's points (indices, azimuths, heights, ranges), with heights and ranges exactly at the
     limits."""
     from gp_ground_segmentation.core import structure
     if not COMPILED:
@@ -203,10 +203,11 @@ def test_compiled_selection_equals_the_numpy_reference(dtype):
     z[40:60] = ground_z[40:60] + top
     candidate = rng.random(n_points) < 0.5
     x, y = (rng.normal(0.0, 30.0, n_points).astype(dtype) for _ in range(2))
-    args = (x, y, z, ground_z, candidate, r, rise, top, limit)
+    angle = np.arctan2(y.astype(np.float64), x.astype(np.float64))
+    args = (angle, z, ground_z, candidate, r, rise, top, limit)
     ours = structure._select_compiled(*args)
     reference = structure._select_numpy(*args)
     for a, b in zip(ours, reference):
         assert a.dtype == b.dtype
         np.testing.assert_array_equal(a, b)
-    assert 0 < reference[0].size < reference[4].size < n_points
+    assert 0 < reference[0].size < reference[3].size < n_points

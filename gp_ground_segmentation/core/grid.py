@@ -52,6 +52,7 @@ class RadialGrid:
     num_segments: int
     num_bins: int
     point_r: np.ndarray  # (P,) radial range sqrt(x^2 + y^2) (m)
+    point_angle: np.ndarray  # (P,) azimuth arctan2(y, x) (rad, float64; see _angle)
     point_segment: np.ndarray  # (P,) int segment index
     point_bin: np.ndarray  # (P,) int bin index
     point_bin_fraction: np.ndarray  # (P,) position inside the bin, 0 at its inner edge, 1 outer
@@ -254,14 +255,15 @@ def build_grid(x: np.ndarray, y: np.ndarray, z: np.ndarray, num_segments: int,
     numpy reference otherwise, or if the compiled pass fails).
     """
     m_count, n_count = int(num_segments), int(num_bins)
-    args = (x, y, z, _angle(x, y), m_count, n_count)
+    angle = _angle(x, y)
+    args = (x, y, z, angle, m_count, n_count)
     out = run(compiled, _grid_compiled, _grid_numpy, *args)
     if not out[0]:  # r overflowed in the compiled pass
         out = _grid_numpy(*args)
     (_, r, seg, bins, fraction, r_min, width, count, candidate_index, cand_r, cand_z,
      density) = out
     shape = (m_count, n_count)
-    return RadialGrid(m_count, n_count, r, seg, bins, fraction, r_min, width,
+    return RadialGrid(m_count, n_count, r, angle, seg, bins, fraction, r_min, width,
                       count.reshape(shape), candidate_index.reshape(shape),
                       cand_r.reshape(shape), cand_z.reshape(shape), density.reshape(shape))
 

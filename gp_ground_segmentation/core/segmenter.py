@@ -787,7 +787,7 @@ class GroundSegmenter:
                 x, y, z, z_hat, ground_v, cell_m=p.structure_cell_m,
                 cell_deg=p.structure_cell_deg, rise_m=p.structure_rise_m,
                 max_height_m=p.structure_max_height_m, step_m=p.structure_step_m,
-                r=grid.point_r)
+                r=grid.point_r, angle=grid.point_angle)
             ground_v &= ~feet
             stats['structure_feet'] = int(np.count_nonzero(feet))
             timings['structure'] = (time.perf_counter() - t) * 1e3

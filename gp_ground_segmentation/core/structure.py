@@ -22,8 +22,9 @@ ground are higher than the structures whose feet are the problem, and must not e
 ground under them.
 
 The cells are computed with numpy (vectorised: its arctan2 and log are not the compiled
-ones, bit for bit). The selection of the column points and candidates (with their
-coordinates in float64 for the cells) is one compiled pass,
+ones, bit for bit; the azimuths are the grid's, computed once per frame). The selection of the
+column points and candidates (with their azimuth and range in float64 for the cells) is one
+compiled pass,
 and so are the table of the highest column point per cell (azimuth x radial; compiled, only
 the rings each azimuth row uses) and the nine look-ups per candidate; the numpy references
 (masks and gathers; a dense table, ``np.maximum.at`` and nine gathers) give the same points
@@ -37,7 +38,7 @@ from __future__ import annotations
 import numpy as np
 
 from .compiled import kernel, run
-from .grid import segment_of
+from .grid import _angle, _segment_of_angle
 
 __all__ = ['vertical_structure_mask']
 
@@ -48,14 +49,15 @@ __all__ = ['vertical_structure_mask']
 _MAX_CELL_M = 0.5
 
 
-def _polar_cells(x, y, r, cell_m: float, cell_rad: float):
-    """(azimuth cell, radial cell) of points at x, y and range r, and the number of azimuth cells.
+def _polar_cells(angle, r, cell_m: float, cell_rad: float):
+    """(azimuth cell, radial cell) of points at float64 azimuth ``angle`` (grid._angle) and
+    range r, and the number of azimuth cells.
 
     Float64 maths whatever the input precision: a float32 cloud and its float64 copy must put
     every point in the same cell. Azimuth cells are the grid's segments, only finer.
     """
     n_az = max(1, int(np.ceil(2.0 * np.pi / cell_rad)))
-    az = segment_of(x, y, n_az)
+    az = _segment_of_angle(angle, n_az)
     # cells of cell_m out to r_square, where an azimuth cell is cell_m wide, then cells growing
     # with r: index r_square / cell_m + ln(r / r_square) / cell_rad, continuous at r_square
     r_square = cell_m / cell_rad
@@ -77,6 +79,7 @@ def vertical_structure_mask(x: np.ndarray, y: np.ndarray, z: np.ndarray,
                             ground_z: np.ndarray, candidate: np.ndarray, *, cell_m: float,
                             cell_deg: float, rise_m: float, max_height_m: float,
                             step_m: float, r: np.ndarray | None = None,
+                            angle: np.ndarray | None = None,
                             compiled: bool = True) -> np.ndarray:
     """Bool mask of the ``candidate`` points that stand at the foot of a vertical structure.
 
@@ -85,8 +88,10 @@ def vertical_structure_mask(x: np.ndarray, y: np.ndarray, z: np.ndarray,
     cell size (m) near the sensor; cell_deg: azimuth cell (deg); rise_m, max_height_m, step_m: a
     point of the neighbourhood between rise_m and max_height_m above the predicted ground (m)
     and more than step_m above the candidate itself (m) makes the candidate a structure foot.
-    r: (P,) horizontal range sqrt(x^2 + y^2) (m) when the caller has it. compiled: the numba
-    pass for the table and the look-ups when numba imports (else the numpy reference).
+    r: (P,) horizontal range sqrt(x^2 + y^2) (m) and angle: (P,) float64 azimuth
+    arctan2(y, x) (rad, as ``grid._angle`` computes it) when the caller has them (the grid
+    does). compiled: the numba pass for the table and the look-ups when numba imports (else
+    the numpy reference).
     Returns a (P,) bool mask, a subset of ``candidate``.
     """
     out = np.zeros(candidate.shape, dtype=bool)
@@ -94,16 +99,18 @@ def vertical_structure_mask(x: np.ndarray, y: np.ndarray, z: np.ndarray,
     limit = max(_MAX_CELL_M, cell_m) / cell_rad
     if r is None:
         r = np.hypot(x, y)
+    if angle is None:
+        angle = _angle(x, y)
     # the limits in the precision of what they are compared with, as numpy compares an array
     # with a Python float
     height_type = np.result_type(z, ground_z).type
-    x_col, y_col, z_col, r_col, cand, x_cand, y_cand, z_cand, r_cand = run(
-        compiled, _select_compiled, _select_numpy, x, y, z, ground_z, candidate, r,
+    angle_col, z_col, r_col, cand, angle_cand, z_cand, r_cand = run(
+        compiled, _select_compiled, _select_numpy, angle, z, ground_z, candidate, r,
         height_type(rise_m), height_type(max_height_m), r.dtype.type(limit))
     if cand.size == 0 or z_col.size == 0:
         return out
-    az_col, ring_col, n_az = _polar_cells(x_col, y_col, r_col, cell_m, cell_rad)
-    az_cand, ring_cand, _ = _polar_cells(x_cand, y_cand, r_cand, cell_m, cell_rad)
+    az_col, ring_col, n_az = _polar_cells(angle_col, r_col, cell_m, cell_rad)
+    az_cand, ring_cand, _ = _polar_cells(angle_cand, r_cand, cell_m, cell_rad)
     width = int(max(ring_col.max(), ring_cand.max())) + 3
     # the step in z's precision, as numpy compares a float32 difference with a Python float
     args = (az_col, ring_col, z_col, az_cand, ring_cand, z_cand, n_az, width,
@@ -112,23 +119,21 @@ def vertical_structure_mask(x: np.ndarray, y: np.ndarray, z: np.ndarray,
     return out
 
 
-def _select_numpy(x, y, z, ground_z, candidate, r, rise_m, max_height_m, limit):
+def _select_numpy(angle, z, ground_z, candidate, r, rise_m, max_height_m, limit):
     """The points within ``limit`` of the sensor that are column points (between ``rise_m`` and
-    ``max_height_m`` above the predicted ground) and those that are ``candidate``s: (x, y, z,
-    r of the column points, then the candidates' indices, x, y, z, r), x, y and r in float64
-    for :func:`_polar_cells`."""
+    ``max_height_m`` above the predicted ground) and those that are ``candidate``s: (azimuth,
+    z, r of the column points, then the candidates' indices, azimuth, z, r), r in float64 for
+    :func:`_polar_cells`."""
     height = z - ground_z
     selected = []
     for index in (np.flatnonzero((height > rise_m) & (height <= max_height_m)),
                   np.flatnonzero(candidate)):
         index, r_in = _within(index, r, limit)
-        selected += [index, np.asarray(x[index], dtype=np.float64),
-                     np.asarray(y[index], dtype=np.float64), z[index],
-                     np.asarray(r_in, dtype=np.float64)]
+        selected += [index, angle[index], z[index], np.asarray(r_in, dtype=np.float64)]
     return tuple(selected[1:])
 
 
-def _select_loop(x, y, z, ground_z, candidate, r, rise_m, max_height_m, limit):
+def _select_loop(angle, z, ground_z, candidate, r, rise_m, max_height_m, limit):
     """:func:`_select_numpy` in two passes over the points (compiled with numba): the same
     comparisons in the same precision and the same values, without the reference's masks,
     gathers and conversions."""
@@ -146,22 +151,22 @@ def _select_loop(x, y, z, ground_z, candidate, r, rise_m, max_height_m, limit):
         if candidate[i]:
             kind[i] |= 2
             n_cand += 1
-    x_col, y_col, r_col = np.empty(n_column), np.empty(n_column), np.empty(n_column)
+    angle_col, r_col = np.empty(n_column, dtype=angle.dtype), np.empty(n_column)
     z_col = np.empty(n_column, dtype=z.dtype)
     cand = np.empty(n_cand, dtype=np.intp)
-    x_cand, y_cand, r_cand = np.empty(n_cand), np.empty(n_cand), np.empty(n_cand)
+    angle_cand, r_cand = np.empty(n_cand, dtype=angle.dtype), np.empty(n_cand)
     z_cand = np.empty(n_cand, dtype=z.dtype)
     c = 0
     k = 0
     for i in range(n_points):
         if kind[i] & 1:
-            x_col[c], y_col[c], z_col[c], r_col[c] = x[i], y[i], z[i], r[i]
+            angle_col[c], z_col[c], r_col[c] = angle[i], z[i], r[i]
             c += 1
         if kind[i] & 2:
             cand[k] = i
-            x_cand[k], y_cand[k], z_cand[k], r_cand[k] = x[i], y[i], z[i], r[i]
+            angle_cand[k], z_cand[k], r_cand[k] = angle[i], z[i], r[i]
             k += 1
-    return x_col, y_col, z_col, r_col, cand, x_cand, y_cand, z_cand, r_cand
+    return angle_col, z_col, r_col, cand, angle_cand, z_cand, r_cand
 
 
 _select_compiled = kernel(_select_loop)

@@ -75,3 +75,17 @@ def test_argument_key_covers_scalars_and_refuses_what_it_cannot_describe():
     assert key == (float, int, bool, np.float32)
     assert compiled._argument_key((2 ** 63,)) is None  # numba: uint64, not int64
     assert compiled._argument_key(((1.0, 2.0),)) is None  # tuples: numba's typing decides
+
+
+@pytest.mark.parametrize('size', [0, 1, 2, 3, 10, 64, 65, 1001])
+def test_sort_in_place_sorts_like_np_sort(size):
+    import numpy as np
+    rng = np.random.default_rng(size)
+    for values in (rng.normal(size=size), np.round(rng.normal(size=size), 1),  # duplicates
+                   np.arange(size, dtype=np.float64), np.arange(size, 0, -1.0)):
+        ours = values.copy()
+        compiled.sort_in_place(ours)
+        np.testing.assert_array_equal(ours, np.sort(values))
+        python = values.copy()  # the Python function (what runs without numba)
+        compiled._sort_in_place(python)
+        np.testing.assert_array_equal(python, np.sort(values))

@@ -447,3 +447,36 @@ def test_compiled_outlier_pass_equals_the_numpy_reference(seed, worst_above_only
         worst_above_only=worst_above_only)
     np.testing.assert_array_equal(ours, reference)
     assert 5 < np.count_nonzero(reference) < np.count_nonzero(mask) // 2
+
+
+def test_warm_up_queues_every_compiled_stage_a_frame_needs():
+    """After warm_up(), frames of either precision and layout ask numba for no signature it
+    has not queued (a missed one compiles, or loads, only once a frame needs it: seconds of
+    numpy-path frames on a new install, even after the recommended warm-up command). In a fresh
+    interpreter: in this one, earlier tests' frames have queued everything already."""
+    import subprocess
+    import sys
+    from gp_ground_segmentation.core import compiled
+    if not compiled.AVAILABLE:
+        pytest.skip('numba not installed')
+    script = """if True:
+        import numpy as np
+        from gp_ground_segmentation import GroundSegmenter
+        from gp_ground_segmentation.core import compiled
+        from scenes.synthetic import make_scene, simulate_scan
+        seg = GroundSegmenter()
+        seg.warm_up()
+        queued = set(compiled._queued)
+        points = simulate_scan(make_scene('mixed'), seed=3).points
+        for cloud in (points[:, :3].astype(np.float32), points[:, :3].astype(np.float64),
+                      np.ascontiguousarray(points, dtype=np.float32)[:, :3]):
+            seg.segment(cloud)
+            seg.segment(cloud)  # a warm frame too
+        for kernel, signature in set(compiled._queued) - queued:
+            print('MISSING', kernel.py_func.__name__, signature)
+        """
+    root = Path(__file__).resolve().parents[1]
+    out = subprocess.run([sys.executable, '-c', script], cwd=root, capture_output=True,
+                         text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert 'MISSING' not in out.stdout, out.stdout

@@ -31,7 +31,7 @@ import math
 
 import numpy as np
 
-from .compiled import kernel, run
+from .compiled import kernel, run, sort_in_place
 from .lines import relative_to_first
 
 
@@ -209,7 +209,8 @@ def _median_loop(values):
     values, or the two middle ones' (a + b) / 2, as np.median's mean of them. NaN, for np.median
     itself to decide, when a middle value is zero: np.median's partition may order -0.0 and
     +0.0 otherwise than a sort, and its mean turns -0.0 into +0.0."""
-    ordered = np.sort(values)
+    ordered = values.copy()
+    sort_in_place(ordered)
     half = ordered.size // 2
     upper = ordered[half]
     lower = ordered[half - 1] if ordered.size % 2 == 0 else upper

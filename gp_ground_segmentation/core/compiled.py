@@ -9,9 +9,9 @@ see gp_compiled.py for where) and release the GIL (``nogil``).
 Because the outputs are the same, a kernel need not be ready to be asked for: :func:`run` calls
 it when it is compiled (or loaded from numba's cache) for the arguments' types, and otherwise
 returns the reference's result and has one background thread compile it. So the first run of
-a new install does not wait ~4 s for these compilations (the first frames take the numpy path
-meanwhile), and later processes load them from the cache within their first frame or
-``GroundSegmenter.warm_up()``. :func:`wait` blocks until the queued compilations are done
+a new install does not wait the ~16-20 s (2 cores) of these compilations: its first frames
+take the numpy path meanwhile, and later processes load them from the cache within their first
+frame or ``GroundSegmenter.warm_up()``. :func:`wait` blocks until the queued compilations are done
 (tests, benchmarks). The GP step (gp_compiled.py) is not here: its compiled and numpy results
 differ in round-off, so it is compiled before use.
 """
@@ -28,7 +28,7 @@ try:  # numba is a regular dependency, but the package must still work without i
 except ImportError:  # pragma: no cover - the numpy references are used instead
     numba = None
 
-__all__ = ['AVAILABLE', 'kernel', 'run', 'wait']
+__all__ = ['AVAILABLE', 'kernel', 'run', 'sort_in_place', 'wait']
 
 AVAILABLE = numba is not None
 
@@ -130,3 +130,37 @@ def _compile_forever() -> None:
             compiled_kernel.compile(signature)  # compiles, or loads numba's on-disk cache
         except Exception:  # noqa: BLE001 - the reference stays in use for this kernel
             _failed.add(compiled_kernel)
+
+
+def _sort_in_place(values):
+    """Sort a 1-D array in place, ascending, for kernels (heapsort, O(n log n)): numba's
+    ``np.sort`` compiles a quicksort in ~1.2 s on a new install, these loops in ~0.2 s.
+    Equal values (-0.0 and +0.0 too) may end up in any order among themselves."""
+    n = values.size
+    for start in range(n // 2 - 1, -1, -1):
+        _sift_down(values, start, n)
+    for end in range(n - 1, 0, -1):
+        top = values[0]
+        values[0] = values[end]
+        values[end] = top
+        _sift_down(values, 0, end)
+
+
+def _sift_down(values, root, end):
+    """Move values[root] down the max-heap values[:end] to its place."""
+    while True:
+        child = 2 * root + 1
+        if child >= end:
+            return
+        if child + 1 < end and values[child + 1] > values[child]:
+            child += 1
+        if not values[child] > values[root]:
+            return
+        swap = values[root]
+        values[root] = values[child]
+        values[child] = swap
+        root = child
+
+
+_sift_down = kernel(_sift_down) or _sift_down  # before the kernel that calls it
+sort_in_place = kernel(_sort_in_place) or _sort_in_place

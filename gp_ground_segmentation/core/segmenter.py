@@ -84,10 +84,10 @@ from .surface import GroundSurface, ground_offsets
 _OUTLIER_NOISE_VAR = 1e4  # m^2: a rejected candidate's noise variance (std 100 m)
 _blas = None  # threadpoolctl controller, made on first use (after scipy has loaded its BLAS)
 # warm_up() waits this long (s) for the background compilations: loading them from numba's
-# cache takes ~0.1 s; a first compilation (~4 s on 2 cores) goes on while frames use numpy
+# cache takes ~0.1 s; a first compilation (~16-20 s on 2 cores) goes on while frames use numpy
 _BACKGROUND_WAIT_S = 0.5
 # The GP step loads from numba's cache in ~0.2 s (0.4 s on a loaded machine) and compiles in
-# 2-4 s: when it took longer than this (s), the cache was empty, the background stages are
+# 1.5-3 s: when it took longer than this (s), the cache was empty, the background stages are
 # compiling too, and waiting _BACKGROUND_WAIT_S for them would only delay the first frame
 _GP_CACHE_LOAD_MAX_S = 1.0
 
@@ -481,39 +481,56 @@ class GroundSegmenter:
                 self._backend = 'numpy'
                 raise
             cache_was_filled = time.perf_counter() - start < _GP_CACHE_LOAD_MAX_S
+            # Queued in the order a frame needs them, for float32 input (what the node decodes
+            # from float32 fields) first, so that frames leave the numpy path stage by stage
+            # on a new install; then the float64 signatures; the surface's offsets last (only
+            # the ground_surface output reads them).
+            grids = {}
             for dtype in (np.float32, np.float64):  # both input precisions of these passes
                 xyz = np.ones((3, 2), dtype=dtype)
                 for cloud in (xyz.T.copy(), np.ones((2, 4), dtype)[:, :3]):  # (N, 3), (N, 4)
                     compiled.run(True, _valid_columns_compiled, _valid_columns, cloud)
-                grid = build_grid(*xyz, 2, 2)
+                grid = grids[dtype] = build_grid(*xyz, 2, 2)
+                if dtype == np.float32:
+                    self._queue_float64_stages(grid)
                 _label_points(np.zeros((2, 3)), np.zeros((2, 3)), grid, xyz[2], True)
-                # z_hat in the points' precision, as _label_points gives it
-                ground_offsets(xyz[2], xyz[2] * 0, np.ones(2, bool), grid.point_segment,
-                               grid.point_bin, 2, 2, 0.1)
                 # a ground point with a column point right above it reaches the compiled part
                 vertical_structure_mask(xyz[0], xyz[1] * 0, np.array([0.0, 0.5], dtype),
                                         np.zeros(2, dtype), np.array([True, False]),
                                         cell_m=0.03, cell_deg=0.25, rise_m=0.2,
                                         max_height_m=0.7, step_m=0.05)
-            # the line growing loop and the plateau state machine (float64 only)
-            lines = extract_lines(grid.candidate_r, grid.candidate_z, grid.density,
-                                  variance_ratio=1.0, max_slope=1.0, max_distance_m=1.0,
-                                  max_gap_m=1.0, max_density_jump=2.0)
-            additions.elevated_plateaus(grid.candidate_r, grid.candidate_z, lines.slope_before,
-                                        step_up_m=0.3, max_slope=1.0, max_gap_m=1.0)
-            # the GP batch's padding, the outlier pass, the length factors at the bin edges, the
-            # threshold's rise
-            additions.cross_segment_rise(np.ones((2, 3)), np.ones((2, 3)), 1.0)
-            gp = FrameGP(grid.candidate_r, grid.candidate_z, np.ones((2, 2)), grid.has_candidate,
-                         backend='numba')
-            self._reject_outliers(gp, gp.solve(np.ones(3)), np.zeros(gp.shape, dtype=bool))
-            compiled.run(True, _fill_rows_to_edges_compiled, _fill_rows_to_edges,
-                         np.ones((2, 2)), grid.has_candidate, gp.segments)
+            for dtype, grid in grids.items():
+                z = np.ones(2, dtype=dtype)  # z_hat in the points' precision, as the labels
+                ground_offsets(z, z * 0, np.ones(2, bool), grid.point_segment, grid.point_bin,
+                               2, 2, 0.1)
             # These stages compile in the background (core/compiled.py); loading them from
-            # numba's cache takes ~0.1 s, so wait that long, not the ~4 s of a first compile
+            # numba's cache takes ~0.1 s, so wait that long, not the ~16-20 s of a first compile
             # (and not at all when the GP's compile showed the cache empty).
             if cache_was_filled:
                 compiled.wait(_BACKGROUND_WAIT_S)
+
+    def _queue_float64_stages(self, grid: RadialGrid) -> None:
+        """warm_up(): run (and so queue for compiling) the stages between the grid and the
+        labels on a tiny grid, in a frame's order; they work on float64 candidates whatever the
+        input. test_warm_up_queues_every_compiled_stage_a_frame_needs checks none is missed."""
+        # the line growing loop and the plateau state machine
+        lines = extract_lines(grid.candidate_r, grid.candidate_z, grid.density,
+                              variance_ratio=1.0, max_slope=1.0, max_distance_m=1.0,
+                              max_gap_m=1.0, max_density_jump=2.0)
+        additions.elevated_plateaus(grid.candidate_r, grid.candidate_z, lines.slope_before,
+                                    step_up_m=0.3, max_slope=1.0, max_gap_m=1.0)
+        # the chord slopes of one-point lines, the anchor (first lines' intercepts, a median)
+        additions.one_point_line_slopes(lines.slope, grid.candidate_r, grid.candidate_z)
+        additions.ground_under_sensor(grid.candidate_z, grid.has_candidate, lines.line_id,
+                                      lines.line_count, lines.intercept)
+        # the GP batch's padding, the outlier pass, the length factors at the bin edges, the
+        # threshold's rise
+        gp = FrameGP(grid.candidate_r, grid.candidate_z, np.ones((2, 2)), grid.has_candidate,
+                     backend='numba')
+        self._reject_outliers(gp, gp.solve(np.ones(3)), np.zeros(gp.shape, dtype=bool))
+        compiled.run(True, _fill_rows_to_edges_compiled, _fill_rows_to_edges,
+                     np.ones((2, 2)), grid.has_candidate, gp.segments)
+        additions.cross_segment_rise(np.ones((2, 3)), np.ones((2, 3)), 1.0)
 
     @property
     def hyperparameters(self) -> Hyperparameters:

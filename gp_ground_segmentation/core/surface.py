@@ -42,7 +42,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from .compiled import kernel, run
+from .compiled import kernel, run, sort_in_place
 from .grid import bin_edges, segment_of
 from .sensor_frame import SensorPose
 
@@ -325,14 +325,23 @@ def _median_of(values):
     partition-based time here): bucket the candidates by value between their min and max, keep
     only the bucket that holds the middle rank, repeat until few are left, sort those. The
     order statistic below the middle one, for an even size, is the largest value of the lower
-    buckets seen on the way, or in the last sort."""
+    buckets seen on the way, or in the last sort.
+
+    Plain loops for min, max and the last sort (``compiled.sort_in_place``): numba's ``np.sort``,
+    ``.min()`` and ``.max()`` cost ~1.5 s of compilation on a new install.
+    """
     size = values.size
     rank = size // 2  # of the upper middle value, within the candidates
     below = -np.inf  # the largest value ranked below every candidate
     candidates = values
     while True:
-        low = candidates.min()
-        high = candidates.max()
+        low = candidates[0]
+        high = candidates[0]
+        for v in candidates:
+            if v < low:
+                low = v
+            elif v > high:
+                high = v
         if high == low:
             upper = low
             lower = low if rank > 0 else below
@@ -345,7 +354,8 @@ def _median_of(values):
                 candidates = kept
                 rank -= passed
                 continue
-        ordered = np.sort(candidates)
+        ordered = candidates.copy()
+        sort_in_place(ordered)
         upper = ordered[rank]
         lower = ordered[rank - 1] if rank > 0 else below
         break

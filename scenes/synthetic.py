@@ -994,6 +994,18 @@ def _family_mount_height(rng, seed):
             f'gentle slope with a mound, cars and poles; sensor {mount:.2f} m above the ground')
 
 
+def _family_high_mount(rng, seed):
+    heights = (3.0, 4.0, 5.0)
+    mount = heights[seed] if 0 <= seed < len(heights) else rng.uniform(3.0, 5.0)
+    slope = rng.uniform(4.0, 10.0)
+    h = TerrainSum((Plane(slope, rng.uniform(-180, 180)),
+                    Gaussian(*_polar(rng, 15, 40), rng.uniform(1.0, 3.0), 8.0)))
+    obs = _clutter(h, rng, cars=5, poles=5, r_lo=8.0, r_hi=50.0)
+    return (h, obs, 'mount', {'sensor_height_m': mount},
+            f'{slope:.1f} deg slope with a mound, cars and poles; sensor {mount:.2f} m above the '
+            'ground (a truck, a mast)')
+
+
 def _family_beams(rng, beams):
     h = TerrainSum((Plane(rng.uniform(0, 6), rng.uniform(-180, 180)),
                     Gaussian(*_polar(rng, 12, 30), rng.uniform(0.5, 2.0), 6.0)))
@@ -1019,6 +1031,9 @@ _FAMILIES = {
     'tilted': _family_tilted,
     'mount_height': None,
     'beams16': None, 'beams32': None, 'beams64': None, 'beams128': None,
+    # appended last: a family's random stream is seeded with its index here, so the families
+    # above keep their scenes
+    'high_mount': None,
 }
 FAMILY_NAMES = tuple(_FAMILIES)
 
@@ -1038,6 +1053,8 @@ def family_scene(family: str, seed: int) -> FamilyScene:
         rng = np.random.default_rng([seed, index] + ([attempt] if attempt else []))
         if family == 'mount_height':
             h, obs, group, extra, text = _family_mount_height(rng, seed)
+        elif family == 'high_mount':
+            h, obs, group, extra, text = _family_high_mount(rng, seed)
         elif family.startswith('beams'):
             h, obs, group, extra, text = _family_beams(rng, int(family[5:]))
         else:

@@ -344,6 +344,8 @@ def test_family_specifics():
         syn.family_scene('nope', 0)
     heights = [syn.family_scene('mount_height', s).sensor_height_m for s in range(3)]
     assert heights == [0.5, 1.5, 2.5]
+    heights = [syn.family_scene('high_mount', s).sensor_height_m for s in range(4)]
+    assert heights[:3] == [3.0, 4.0, 5.0] and 3.0 <= heights[3] <= 5.0
     for seed in range(3):
         member, scan = _exact_family_scan('indoor', seed)
         assert 0.3 <= member.sensor_height_m <= 0.8

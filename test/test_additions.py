@@ -202,6 +202,19 @@ def test_outlier_thresholds_are_one_sided_each():
                                   [True, False, True, False, False])
 
 
+def test_outlier_limit_above_grows_with_the_leave_one_out_std():
+    """With std_factor, a residual above the fixed limit is an obstacle top only if it is also
+    above std_factor leave-one-out stds; the limit below does not change."""
+    loo = np.array([0.9, 0.9, 1.5, -1.1, NAN])
+    std = np.array([0.1, 0.4, 0.4, 2.0, NAN])
+    got = outlier_candidates(loo, above_m=0.8, below_m=1.0, loo_std=std, std_factor=3.0)
+    # limits above: max(0.8, 0.3) = 0.8, max(0.8, 1.2) = 1.2, 1.2; below stays -1.0
+    np.testing.assert_array_equal(got, [True, False, True, True, False])
+    np.testing.assert_array_equal(
+        outlier_candidates(loo, above_m=0.8, below_m=1.0, loo_std=std, std_factor=0.0),
+        outlier_candidates(loo, above_m=0.8, below_m=1.0))
+
+
 def test_outliers_worst_above_per_segment():
     """Row 0: two candidates above 0.8 m, only the worse (1.2) goes; the noise spike (-1.1) is
     dropped whatever the rest. Row 1: one above the limit, it goes. Row 2: none."""

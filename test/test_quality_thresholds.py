@@ -2,9 +2,10 @@
 """Quality of the defaults on the bench_quality data, cold (a fresh segmenter per frame).
 
 Thresholds sit just under what the defaults reach (benchmarks/RESULTS.md, "Ground quality",
-measured 2026-11-26, vertical-structure test and cross-slope threshold on): a change that
-costs a family or a real scene more than about half a point of F1 fails here. The issue-10
-targets that are met are asserted as such (crest recall).
+measured 2026-11-26, vertical-structure test and cross-slope threshold on; 2026-11-27 with
+the 3-sigma outlier limit for cross_slope, rough, near_person_car and the new high_mount): a
+change that costs a family or a real scene more than about half a point of F1 fails here. The
+issue-10 targets that are met are asserted as such (crest recall).
 """
 
 import sys
@@ -29,10 +30,10 @@ def pooled(frames):
 FAMILIES = {
     'crest': (0.99, 0.99),  # 0.996 / 0.996; issue-10 target: downhill-past-crest recall 0.98
     'valley': (0.978, 0.96),  # 0.983 / 0.966
-    'cross_slope': (0.985, 0.975),  # 0.990 / 0.981
-    'rough': (0.986, 0.977),  # 0.991 / 0.982
-    'near_person_car': (0.987, 0.984),  # 0.992 / 0.989
-    'high_mount': (0.979, 0.965),  # 0.984 / 0.970 (3-5 m mounts on 4-10 deg slopes)
+    'cross_slope': (0.987, 0.979),  # 0.992 / 0.984
+    'rough': (0.986, 0.978),  # 0.991 / 0.983
+    'near_person_car': (0.989, 0.986),  # 0.994 / 0.991
+    'high_mount': (0.984, 0.973),  # 0.989 / 0.978 (3-5 m mounts on 4-10 deg slopes)
 }
 
 

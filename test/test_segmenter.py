@@ -439,14 +439,20 @@ def test_compiled_outlier_pass_equals_the_numpy_reference(seed, worst_above_only
     gp = FrameGP(r, z, d, mask, anchor=anchor, backend='numba')
     sol = gp.solve(np.array([0.5, 2.0, 0.1]))
     known = mask & (rng.random(mask.shape) < 0.05)
-    args = (0.5, 0.5, worst_above_only)
-    ours = module._new_outliers_compiled(sol.alpha, sol.a_inv, gp.valid, gp.is_anchor,
-                                         gp.segments, gp.bins, known, *args)
-    reference = ~known & additions.outlier_candidates(
-        gp.to_grid(gp.loo_residuals(sol), np.nan), above_m=args[0], below_m=args[1],
-        worst_above_only=worst_above_only)
-    np.testing.assert_array_equal(ours, reference)
-    assert 5 < np.count_nonzero(reference) < np.count_nonzero(mask) // 2
+    counts = []
+    for std_factor in (0.0, 3.0):
+        args = (0.5, 0.5, worst_above_only, std_factor)
+        ours = module._new_outliers_compiled(sol.alpha, sol.a_inv, gp.valid, gp.is_anchor,
+                                             gp.segments, gp.bins, known, *args)
+        reference = ~known & additions.outlier_candidates(
+            gp.to_grid(gp.loo_residuals(sol), np.nan), above_m=args[0], below_m=args[1],
+            worst_above_only=worst_above_only, loo_std=gp.to_grid(gp.loo_std(sol), np.nan),
+            std_factor=std_factor)
+        np.testing.assert_array_equal(ours, reference)
+        counts.append(np.count_nonzero(reference))
+    assert 5 < counts[0] < np.count_nonzero(mask) // 2
+    # the loose predictions of sparse slots keep their candidate
+    assert counts[1] <= counts[0] if worst_above_only else counts[1] < counts[0]
 
 
 def test_warm_up_queues_every_compiled_stage_a_frame_needs():

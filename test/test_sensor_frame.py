@@ -154,7 +154,8 @@ def test_centring_note(scan):
 @pytest.mark.skipif(not LABELED_BIN.exists(), reason=f'{DATA} not present')
 def test_real_frame_shifted_20_m():
     # Measured: F1 0.971 in the sensor frame, 0.880 shifted 20 m in x, 0.971 with sensor_x_m
-    # (issue-10 defaults: 0.893 shifted; the pose parameters still matter by 8 points).
+    # (issue-10 defaults: 0.893 shifted; with outlier_std_factor 3, 2026-11-27: 0.913 shifted,
+    # 0.974 with sensor_x_m: the pose parameters still matter by 6 points).
     from gp_ground_segmentation.tools.io import read_kitti_bin, read_semantickitti_labels
     points = read_kitti_bin(LABELED_BIN)
     labels = read_semantickitti_labels(LABELED_LABELS)
@@ -164,7 +165,7 @@ def test_real_frame_shifted_20_m():
     def f1(cloud, params):
         return ground_metrics(GroundSegmenter(params).segment(cloud).ground_mask, labels,
                               False)['f1']
-    assert f1(shifted, SegmenterParams()) < 0.91
+    assert f1(shifted, SegmenterParams()) < 0.92
     assert f1(shifted, SegmenterParams(sensor_x_m=20.0)) > 0.97
     assert centring_note(shifted) is not None and centring_note(points) is None
 

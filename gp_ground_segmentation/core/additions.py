@@ -257,10 +257,12 @@ _first_line_intercepts_compiled = kernel(_first_line_intercepts_loop)
 
 
 def outlier_candidates(loo_residual: np.ndarray, *, above_m: float, below_m: float,
-                       worst_above_only: bool = False) -> np.ndarray:
+                       worst_above_only: bool = False, loo_std: np.ndarray | None = None,
+                       std_factor: float = 0.0) -> np.ndarray:
     """Mask of candidates whose leave-one-out residual z_i - mean_{-i} is an outlier.
 
-    Above ``above_m``: an obstacle top, not ground. Below ``-below_m``: below-ground reflection
+    Above ``above_m`` (and above ``std_factor`` times ``loo_std``, the leave-one-out predictive
+    std, when given): an obstacle top, not ground. Below ``-below_m``: below-ground reflection
     noise. NaN residuals (no training candidate there) are not outliers.
 
     ``worst_above_only``: of the candidates above ``above_m`` keep only the highest residual
@@ -270,7 +272,8 @@ def outlier_candidates(loo_residual: np.ndarray, *, above_m: float, below_m: flo
     the worst per pass is the usual iterative way.
     """
     with np.errstate(invalid='ignore'):
-        above = loo_residual > above_m
+        limit = above_m if loo_std is None else np.maximum(above_m, std_factor * loo_std)
+        above = loo_residual > limit
         if worst_above_only and above.any():
             top = np.max(np.where(np.isnan(loo_residual), -np.inf, loo_residual), axis=1)
             above &= loo_residual >= top[:, None]

@@ -692,6 +692,12 @@ class FrameGP:
         diag = np.diagonal(sol.a_inv, axis1=1, axis2=2)
         return np.where(self.valid, sol.alpha / diag, 0.0)
 
+    def loo_std(self, sol: GPSolution) -> np.ndarray:
+        """(S, n) leave-one-out predictive std sqrt(1 / [A^-1]_ii) of each slot, sensor noise
+        included (R&W eq. 5.12); 0 on padded slots."""
+        diag = np.diagonal(sol.a_inv, axis1=1, axis2=2)
+        return np.where(self.valid, np.sqrt(1.0 / diag), 0.0)
+
     def predict(self, sol: GPSolution, r_star, d_star, with_std=True, return_kernel=False):
         """Posterior mean (absolute z) and std at r_star, d_star (S, k) of the batch segments.
 

@@ -160,6 +160,13 @@ class SegmenterParams:
         0.8, 'a candidate whose leave-one-out GP residual is above this (m) is an obstacle top, '
         'not ground: it stops training the GP (checked before and after learning theta)',
         0.01, 100.0)
+    outlier_std_factor: float = _param(
+        3.0, 'ours: multiplier (dimensionless) of the leave-one-out predictive std (sqrt(1 / '
+        '[A^-1]_ii), sensor noise included): a candidate is an obstacle top only when its '
+        'leave-one-out residual is above outlier_residual_m and above this many stds (3 = the '
+        'usual Gaussian bound). Where candidates are sparse (16-beam rings, far ground, high '
+        'mounts) the GP predicts a left-out candidate loosely and the fixed limit rejected true '
+        'ground; 0 uses outlier_residual_m alone', 0.0, 100.0)
     outlier_worst_per_segment: bool = _param(
         False, 'ours: each outlier pass drops at most one obstacle-top candidate per segment '
         '(the highest leave-one-out residual above outlier_residual_m), so ground next to an '

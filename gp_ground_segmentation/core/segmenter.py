@@ -42,8 +42,10 @@ Choices where the paper is vague, each a parameter (see params.py):
 * Outlier candidates. The lowest point of a bin is not always ground: below-ground reflection
   noise (points metres under the road) and the tops of obstacles whose ground is occluded
   (a car roof seen over its bonnet) both become candidates. A candidate whose leave-one-out
-  GP residual is above ``outlier_residual_m`` or below ``-noise_spike_m`` is given a large
-  noise variance (it stops pulling the fit) and the GP is solved again. There are two passes,
+  GP residual is above ``outlier_residual_m`` (and above ``outlier_std_factor`` leave-one-out
+  predictive stds, so that sparse candidates, which the GP predicts loosely, are not rejected
+  for that alone) or below ``-noise_spike_m`` is given a large noise variance (it stops pulling
+  the fit) and the GP is solved again. There are two passes,
   one before and one after theta is learned, so that an outlier pair masking each other in the
   first pass is caught in the second.
 * "Close to the ground". A point is ground when z - z_hat(r) <= ground_threshold_m +
@@ -387,12 +389,13 @@ _fill_rows_to_edges_compiled = compiled.kernel(_fill_rows_to_edges_loop)
 
 
 def _new_outliers_loop(alpha, a_inv, valid, is_anchor, segments, bins, outliers, above_m,
-                       below_m, worst_above_only):
+                       below_m, worst_above_only, std_factor):
     """(M, N) candidates not yet in ``outliers`` whose leave-one-out residual is an outlier, in
     one pass over the GP's slots (compiled with numba). Replaces, with the same values,
     ``~outliers & additions.outlier_candidates(gp.to_grid(gp.loo_residuals(sol), nan), ...)``
     (the reference in ``_reject_outliers``): residual alpha_i / [A^-1]_ii of each grid
-    candidate's slot, the same comparisons, and with ``worst_above_only`` the row's highest
+    candidate's slot, the same comparisons (the limit above is also ``std_factor`` times the
+    leave-one-out std sqrt(1 / [A^-1]_ii)), and with ``worst_above_only`` the row's highest
     residual."""
     new = np.zeros(outliers.shape, dtype=np.bool_)
     n_slots = valid.shape[1]
@@ -409,7 +412,8 @@ def _new_outliers_loop(alpha, a_inv, valid, is_anchor, segments, bins, outliers,
             if not valid[s, i] or is_anchor[s, i]:
                 continue
             loo = alpha[s, i] / a_inv[s, i, i]
-            above = loo > above_m
+            limit = max(above_m, std_factor * np.sqrt(1.0 / a_inv[s, i, i]))
+            above = loo > limit
             if worst_above_only and above:
                 above = loo >= top
             b = bins[s, i]
@@ -628,12 +632,13 @@ class GroundSegmenter:
             loo = gp.to_grid(gp.loo_residuals(sol), np.nan)
             return ~outliers & additions.outlier_candidates(
                 loo, above_m=p.outlier_residual_m, below_m=p.noise_spike_m,
-                worst_above_only=p.outlier_worst_per_segment)
+                worst_above_only=p.outlier_worst_per_segment,
+                loo_std=gp.to_grid(gp.loo_std(sol), np.nan), std_factor=p.outlier_std_factor)
 
         new = compiled.run(gp.backend == 'numba', _new_outliers_compiled, reference, sol.alpha,
                            sol.a_inv, gp.valid, gp.is_anchor, gp.segments, gp.bins, outliers,
                            float(p.outlier_residual_m), float(p.noise_spike_m),
-                           bool(p.outlier_worst_per_segment))
+                           bool(p.outlier_worst_per_segment), float(p.outlier_std_factor))
         if not new.any():
             return gp, sol, outliers
         outliers = outliers | new

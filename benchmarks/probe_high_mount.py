@@ -9,12 +9,12 @@ Usage::
 Each of the classic scenes ``flat``, ``hill``, ``ramp15`` and ``mixed`` is ray-cast
 (HDL-64E-like beams, seed 1) from mounts 0.4, 1.73, 3.0 and 4.5 m above the ground and scored
 cold: this project with ``SegmenterParams()`` defaults (no mount height) and Patchwork++ with
-its defaults plus the true mount height (``min_range`` 0.3 m below 1 m mounts, as
-bench_quality.py). For this project the ground points it misses are split by the stage that
-dropped them (the vertical-structure test or the height test) and the training candidates the
-robust pass rejected as outliers are counted. ``--set`` changes this project's parameters
-(e.g. ``max_threshold_m=0.45``, README "Tuning guide"; only written to RESULTS.md without it).
-Nothing here chooses a default.
+bench_quality.py's settings (its defaults plus the true mount height, ``min_range`` 0.3 m below
+1 m mounts, RNR off: synthetic intensity is made up). For this project the ground points it
+misses are split by the stage that dropped them (the vertical-structure test or the height
+test) and the training candidates the robust pass rejected as outliers are counted. ``--set``
+changes this project's parameters (e.g. ``max_threshold_m=0.45``, README "Tuning guide"; only
+written to RESULTS.md without it). Nothing here chooses a default.
 """
 
 from __future__ import annotations
@@ -27,6 +27,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+import bench_quality  # noqa: E402
 import common  # noqa: E402
 
 from gp_ground_segmentation import GroundSegmenter, SegmenterParams  # noqa: E402
@@ -40,23 +41,14 @@ MOUNTS_M = (0.4, 1.73, 3.0, 4.5)
 
 
 def patchworkpp_f1(scan, mount_m: float) -> str:
+    """Patchwork++'s F1 on one scan with bench_quality.py's settings for its mount (cold)."""
+    # as common.load_family makes a family's frames: made-up intensity flagged as absent
+    frame = common.Frame('probe', np.ascontiguousarray(scan.points), False, scan.is_ground,
+                         scan.returned, mount_m)
     try:
-        import pypatchworkpp
+        return f'{bench_quality.run_frames("patchworkpp", [frame])[0]["f1"]:.3f}'
     except ImportError:
         return 'n/a'
-    params = pypatchworkpp.Parameters()
-    params.sensor_height = mount_m
-    params.verbose = False
-    params.enable_RNR = False  # synthetic intensity is not physically modelled
-    if mount_m < 1.0:
-        params.min_range = 0.3
-    with common.quiet_stdout():
-        method = pypatchworkpp.patchworkpp(params)
-    points = np.ascontiguousarray(scan.points[:, :3], dtype=np.float32)
-    method.estimateGround(points)
-    ground = np.zeros(len(points), dtype=bool)
-    ground[method.getGroundIndices()] = True
-    return f'{truth_metrics(ground, scan.is_ground, scan.returned)["f1"]:.3f}'
 
 
 def main(argv=None):

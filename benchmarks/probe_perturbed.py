@@ -111,15 +111,6 @@ PERTURBATIONS = (('as recorded', lambda frame: frame),
                                                     points=with_range_noise(frame.points))))
 
 
-def score_cold(method_key: str, frame) -> dict:
-    """Counts of one method on one frame, a fresh instance (cold), bench_quality's settings."""
-    method = bench_quality.make_method(method_key, frame)
-    method.start(common.Dataset('probe', [frame]))
-    with common.quiet_stdout():
-        ground = method.run(frame)
-    return common.score(ground, frame)
-
-
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     ap.add_argument('--no-write', action='store_true', help='print only')
@@ -134,14 +125,11 @@ def main(argv=None):
     rows = []
     for label, perturb in PERTURBATIONS:
         for data_name, frames in data:
-            scores = {key: [] for key in ('gp', 'patchworkpp')}
-            points = []
-            for frame in frames:
-                changed = perturb(frame)
-                points.append(len(changed.points))
-                for key in scores:
-                    scores[key].append(score_cold(key, changed))
-            ours, theirs = (pooled_metrics(scores[key]) for key in ('gp', 'patchworkpp'))
+            changed = [perturb(frame) for frame in frames]
+            # cold: a fresh instance per scan, bench_quality's settings for each method
+            ours, theirs = (pooled_metrics(bench_quality.run_frames(key, changed))
+                            for key in ('gp', 'patchworkpp'))
+            points = [len(frame.points) for frame in changed]
             rows.append([label, data_name, f'{int(np.mean(points)):,}',
                          *(f'{m["precision"]:.3f} / {m["recall"]:.3f} / {m["f1"]:.3f}'
                            for m in (ours, theirs)),

@@ -255,6 +255,8 @@ def ablation_variants() -> dict:
       already that, the paper's non-stationary L instead (d_i in [0.05, 2]);
     * theta frozen: no marginal-likelihood evaluations at all, theta stays at its initial value;
     * outlier limit fixed: ``outlier_std_factor`` 0 (the leave-one-out std does not widen it);
+    * raw length factors: ``length_factor_smoothing_passes`` 0 (the paper's d_i, not smoothed
+      along the segment);
     * every bool field of SegmenterParams (``use_*`` switches and others) flipped, discovered at
       run time so that new switches appear without code changes.
     """
@@ -269,6 +271,7 @@ def ablation_variants() -> dict:
         'theta frozen (0 optimizer evaluations)': {'optimizer_first_frame_evaluations': 0,
                                                    'optimizer_max_evaluations': 0},
         'outlier_std_factor=0': {'outlier_std_factor': 0.0},
+        'length_factor_smoothing_passes=0': {'length_factor_smoothing_passes': 0},
     }
     for f in dataclasses.fields(SegmenterParams):
         if isinstance(f.default, bool):

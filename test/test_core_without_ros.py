@@ -58,5 +58,10 @@ def test_core_imports_and_segments_without_ros():
     assert out.returncode == 0, out.stderr[-2000:]
     result = json.loads(out.stdout.strip().splitlines()[-1])
     assert result['ros_modules'] == []
-    # measured 0.991 and 1.0 (seeded): the frame is really segmented, not just imported
-    assert result['ground_recall'] > 0.98 and result['obstacle_recall'] > 0.99
+    # the frame is really segmented, not just imported. Measured at this seed 1.000 and 0.943
+    # (2 of the box's 35 random points are called ground). The box is 35 points scattered
+    # 0.5-1.5 m above a 0.1 slope: over seeds 0-39 of this very scene the obstacle recall is
+    # 0.983 on average, 0.879 at worst, and with the paper's unsmoothed length factors
+    # (length_factor_smoothing_passes=0) 0.988 / 0.889 (RESULTS.md, "Length factors smoothed
+    # along the segment"), so the limit is set for the scene, not for one lucky seed
+    assert result['ground_recall'] > 0.98 and result['obstacle_recall'] > 0.9

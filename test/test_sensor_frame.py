@@ -155,7 +155,8 @@ def test_centring_note(scan):
 def test_real_frame_shifted_20_m():
     # Measured: F1 0.971 in the sensor frame, 0.880 shifted 20 m in x, 0.971 with sensor_x_m
     # (issue-10 defaults: 0.893 shifted; with outlier_std_factor 3, 2026-11-27: 0.913 shifted,
-    # 0.974 with sensor_x_m: the pose parameters still matter by 6 points).
+    # 0.974 with sensor_x_m; with the smoothed length factors, 2026-11-27: 0.944 shifted, 0.974
+    # with sensor_x_m: the pose parameters still matter by 3 points).
     from gp_ground_segmentation.tools.io import read_kitti_bin, read_semantickitti_labels
     points = read_kitti_bin(LABELED_BIN)
     labels = read_semantickitti_labels(LABELED_LABELS)
@@ -165,7 +166,7 @@ def test_real_frame_shifted_20_m():
     def f1(cloud, params):
         return ground_metrics(GroundSegmenter(params).segment(cloud).ground_mask, labels,
                               False)['f1']
-    assert f1(shifted, SegmenterParams()) < 0.92
+    assert f1(shifted, SegmenterParams()) < 0.955
     assert f1(shifted, SegmenterParams(sensor_x_m=20.0)) > 0.97
     assert centring_note(shifted) is not None and centring_note(points) is None
 

@@ -125,6 +125,11 @@ class SegmenterParams:
         'L_i = a*d_i in m)', 1e-4, 100.0)
     max_length_factor: float = _param(
         2.0, 'upper clip of the length-scale factor d_i (dimensionless)', 1e-2, 1e5)
+    length_factor_smoothing_passes: int = _param(
+        5, 'ours, not the paper\'s: passes of a (1, 2, 1) / 4 running mean of log d_i over '
+        'each segment\'s training candidates (neighbours in bin order), so L_i does not jump '
+        'between neighbouring bins with how many rings each holds; 0 is the paper\'s raw d_i',
+        0, 20)
     sigma_f_init_m: float = _param(0.5, 'initial sigma_f, GP signal std (m)', 1e-3, 100.0)
     length_scale_gain_init: float = _param(
         2.0, 'initial a, the gain of L_i = a*d_i (m per unit d)', 1e-3, 1e3)

@@ -527,6 +527,8 @@ class GroundSegmenter:
         additions.one_point_line_slopes(lines.slope, grid.candidate_r, grid.candidate_z)
         additions.ground_under_sensor(grid.candidate_z, grid.has_candidate, lines.line_id,
                                       lines.line_count, lines.intercept)
+        # the length factors' smoothing along the segments
+        additions.smooth_length_factors(np.ones((2, 2)), grid.has_candidate, 1)
         # the GP batch's padding, the outlier pass, the length factors at the bin edges, the
         # threshold's rise
         gp = FrameGP(grid.candidate_r, grid.candidate_z, np.ones((2, 2)), grid.has_candidate,
@@ -603,13 +605,15 @@ class GroundSegmenter:
         return training
 
     def _length_factors(self, grid: RadialGrid, lines: LineSegments, training):
-        """d_i of every candidate from its line's slope and its relative rho~ (gp.py)."""
+        """d_i of every candidate from its line's slope and its relative rho~ (gp.py), smoothed
+        along the segment when ``length_factor_smoothing_passes`` asks (ours, additions.py)."""
         p = self._params
         density_rel = relative_density(grid.density, grid.candidate_r, training)
-        return length_scale_factors(lines.slope, density_rel,
-                                    slope_floor=p.slope_floor, slope_ceiling=p.slope_ceiling,
-                                    density_in_flat_branch=p.density_in_flat_branch,
-                                    d_min=p.min_length_factor, d_max=p.max_length_factor)
+        d = length_scale_factors(lines.slope, density_rel,
+                                 slope_floor=p.slope_floor, slope_ceiling=p.slope_ceiling,
+                                 density_in_flat_branch=p.density_in_flat_branch,
+                                 d_min=p.min_length_factor, d_max=p.max_length_factor)
+        return additions.smooth_length_factors(d, training, p.length_factor_smoothing_passes)
 
     def _anchor(self, grid: RadialGrid, lines: LineSegments, training, d, stats):
         """The ground under the vehicle as a GP point at r = 0 of every segment with candidates."""

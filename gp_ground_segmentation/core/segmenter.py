@@ -613,7 +613,8 @@ class GroundSegmenter:
                                  slope_floor=p.slope_floor, slope_ceiling=p.slope_ceiling,
                                  density_in_flat_branch=p.density_in_flat_branch,
                                  d_min=p.min_length_factor, d_max=p.max_length_factor)
-        return additions.smooth_length_factors(d, training, p.length_factor_smoothing_passes)
+        return additions.smooth_length_factors(d, training, p.length_factor_smoothing_passes,
+                                               compiled=self._backend == 'numba')
 
     def _anchor(self, grid: RadialGrid, lines: LineSegments, training, d, stats):
         """The ground under the vehicle as a GP point at r = 0 of every segment with candidates."""

@@ -16,12 +16,13 @@ a stream), then the surface is evaluated with ``height_at(x, y)`` at the true gr
   labelled ground point (a measurement, with the sensor's noise).
 
 Columns: ``median |err|`` = median |z_hat - truth| (m); ``in +-2 z_std`` = fraction of samples
-with |z_hat - truth| <= 2 z_std (z_std: posterior std of the latent ground height, what the
-surface reports); for diagnosis, ``bias`` = median signed z_hat - truth (m), ``in +-2
-sqrt(z_std^2 + sigma_n^2)`` = the same fraction for the predictive std of one measurement, and
-``median z_std``; ``GP mean only`` = the same two figures for the GP mean trained on the lowest
-points without the surface's ground offset (the labels' z_hat), to show what the offset does.
-Samples outside the grid (height_at NaN) are counted in ``outside``.
+with |z_hat - truth| <= 2 z_std (z_std: std of the latent ground height, the GP's posterior std
+and the spread across the segment, what the surface reports); for diagnosis, ``bias`` = median
+signed z_hat - truth (m), ``in +-2 sqrt(z_std^2 + sigma_n^2)`` = the same fraction for the
+predictive std of one measurement, and ``median z_std``; ``GP mean only`` = the same two figures
+for the GP mean trained on the lowest points without the surface's ground offset (the labels'
+z_hat), to show what the offset does. Samples outside the grid (height_at NaN) are counted in
+``outside``.
 
 On the real scans the truth points are the measurements the ground offset is averaged from (the
 points labelled ground by the segmenter overlap the labelled ground), so those figures are

@@ -54,9 +54,9 @@ NODE_PARAMS = {
         'default': True, 'type': 'bool', 'read_only': False,
         'description': 'publish the GP ground surface on ground_surface: PointCloud2 x, y, z, '
                        'z_std (FLOAT32, m) at the bin edges of every segment with ground '
-                       'candidates; z_std is the posterior std of the ground height itself '
-                       '(without sensor noise); the node builds it only while the topic has a '
-                       'subscriber'},
+                       'candidates; z_std is the std of the ground height itself (the GP '
+                       'posterior std and the spread across the segment; without sensor '
+                       'noise); the node builds it only while the topic has a subscriber'},
     'add_height_above_ground_field': {
         'default': False, 'type': 'bool', 'read_only': False,
         'description': 'append a FLOAT32 height_above_ground field (z - predicted ground '

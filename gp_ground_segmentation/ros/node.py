@@ -20,8 +20,9 @@ Topics (relative names; remap e.g. ``-r points:=/velodyne_points``):
   ground     (pub) sensor_msgs/PointCloud2, RELIABLE, VOLATILE, keep last 1.
   obstacles  (pub) same QoS as ground.
   ground_surface (pub) same QoS: the GP ground surface, PointCloud2 x, y, z, z_std (FLOAT32, m;
-             z = GP mean + ground offset, z_std = posterior std of the latent ground height
-             without sensor noise; core/surface.py) at the bin edges
+             z = GP mean + ground offset, z_std = std of the latent ground height (GP
+             posterior and spread across the segment) without sensor noise; core/surface.py)
+             at the bin edges
              of every segment with ground candidates, input header; only while
              ``publish_ground_surface`` is true, and built only while the topic has a
              subscriber (lazy: it costs ~1.7 ms a frame on 124k points in the node).

@@ -9,7 +9,7 @@ Middle panel (bird's-eye view, x vs y): every valid point coloured ground / obst
 SemanticKITTI labels are given, by error: true ground found (TP), ground missed (FN), obstacle
 called ground (FP), obstacle kept (TN); the selected segment is outlined.
 Right panel (bird's-eye height map): the ground surface coloured by z, with contours of z_std
-(the posterior std of the ground height) over the supported prediction points.
+(the std of the ground height, surface.z_std) over the supported prediction points.
 
 The intermediate arrays come from ``GroundSegmenter.segment(points, details=True).details``
 (``segmenter.SegmentationDetails``); whatever the details do not provide is left out of the

@@ -85,6 +85,8 @@ SEARCH_SPACE = (
                 'start of the GP noise std (first frame); must be >= sigma_n_min_m'),
     SearchRange('num_bins', 16, 36, 4,
                 'radial bins per segment: resolution of the ground profile vs cost'),
+    SearchRange('length_factor_smoothing_passes', 0, 10, 1,
+                'smoothing of the length scales along a segment; 0 = the paper\'s raw d_i'),
 )
 
 

@@ -561,6 +561,31 @@ def command_line() -> str:
     return ' '.join(['python', str(script)] + sys.argv[1:])
 
 
+def probe_arguments(description: str, argv=None):
+    """(args, SegmenterParams) of a probe script's command line: ``--set name=value ...`` over
+    this project's defaults and ``--no-write`` (print only)."""
+    import argparse
+    from gp_ground_segmentation import SegmenterParams
+    ap = argparse.ArgumentParser(description=description)
+    ap.add_argument('--set', nargs='*', default=[], help='name=value over the defaults (ours)')
+    ap.add_argument('--no-write', action='store_true', help='print only')
+    args = ap.parse_args(argv)
+    return args, SegmenterParams(**parse_param_values(args.set))
+
+
+def report_probe(args, results_path: Path, section: str, title: str, note: str, headers,
+                 rows) -> str:
+    """A probe's RESULTS.md section (title, machine and command, ``note``, the table), printed,
+    and written unless ``--no-write`` or ``--set`` was given (a changed parameter set is not
+    the record of the defaults). Returns the text."""
+    text = (f'## {title}\n\n' + machine_markdown(command_line()) + '\n' + note + '\n\n'
+            + markdown_table(headers, rows) + '\n')
+    print(text)
+    if not args.no_write and not args.set:
+        update_results_section(results_path, section, text)
+    return text
+
+
 def update_results_section(path: Path, section: str, text: str) -> None:
     """Replace (or append) the block between ``<!-- BEGIN s -->`` and ``<!-- END s -->``.
 

@@ -19,7 +19,6 @@ written to RESULTS.md without it). Nothing here chooses a default.
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
@@ -30,7 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import bench_quality  # noqa: E402
 import common  # noqa: E402
 
-from gp_ground_segmentation import GroundSegmenter, SegmenterParams  # noqa: E402
+from gp_ground_segmentation import GroundSegmenter  # noqa: E402
 from gp_ground_segmentation.tools.evaluation import truth_metrics  # noqa: E402
 from scenes.synthetic import make_scene, simulate_scan  # noqa: E402
 
@@ -52,11 +51,7 @@ def patchworkpp_f1(scan, mount_m: float) -> str:
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
-    ap.add_argument('--set', nargs='*', default=[], help='name=value over the defaults (ours)')
-    ap.add_argument('--no-write', action='store_true', help='print only')
-    args = ap.parse_args(argv)
-    params = SegmenterParams(**common.parse_param_values(args.set))
+    args, params = common.probe_arguments(__doc__.split('\n')[0], argv)
     rows = []
     for scene in SCENES:
         for mount in MOUNTS_M:
@@ -73,17 +68,14 @@ def main(argv=None):
                          f'{result.stats["outlier_candidates"]:,} of '
                          f'{result.stats["candidates"]:,}'])
             print(' | '.join(rows[-1]), flush=True)
-    table = common.markdown_table(
+    common.report_probe(
+        args, RESULTS, SECTION,
+        'Classic scenes from lower and higher mounts (`probe_high_mount.py`)',
+        'Cold, one scan per row (HDL-64E-like beams, seed 1); what is set: the script\'s '
+        'docstring. Not used to choose any default.',
         ['scene', 'mount m', 'this project P / R / F1', 'Patchwork++ F1',
          'missed ground: structure test', 'missed ground: height test',
          'candidates rejected as outliers'], rows)
-    text = ('## Classic scenes from lower and higher mounts (`probe_high_mount.py`)\n\n'
-            + common.machine_markdown(common.command_line()) + '\n'
-            + 'Cold, one scan per row (HDL-64E-like beams, seed 1); what is set: the script\'s '
-              'docstring. Not used to choose any default.\n\n' + table + '\n')
-    print(text)
-    if not args.no_write and not args.set:
-        common.update_results_section(RESULTS, SECTION, text)
 
 
 if __name__ == '__main__':

@@ -22,7 +22,6 @@ direction pattern is a stand-in for a real rosette, not a model of one.
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
@@ -33,7 +32,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import bench_quality  # noqa: E402
 import common  # noqa: E402
 
-from gp_ground_segmentation import GroundSegmenter, SegmenterParams  # noqa: E402
+from gp_ground_segmentation import GroundSegmenter  # noqa: E402
 from gp_ground_segmentation.tools.evaluation import truth_metrics  # noqa: E402
 from scenes.synthetic import make_scene, simulate_scan  # noqa: E402
 
@@ -65,11 +64,7 @@ def ringless_scan(scene: str, half_azimuth_deg, low_deg: float, high_deg: float,
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
-    ap.add_argument('--set', nargs='*', default=[], help='name=value over the defaults (ours)')
-    ap.add_argument('--no-write', action='store_true', help='print only')
-    args = ap.parse_args(argv)
-    params = SegmenterParams(**common.parse_param_values(args.set))
+    args, params = common.probe_arguments(__doc__.split('\n')[0], argv)
     rows = []
     for pattern, half_azimuth, low, high in PATTERNS:
         for scene in SCENES:
@@ -85,17 +80,14 @@ def main(argv=None):
             rows.append([pattern, scene, f'{len(points):,}',
                          f'{m["precision"]:.3f} / {m["recall"]:.3f} / {m["f1"]:.3f}', peer_text])
             print(' | '.join(rows[-1]), flush=True)
-    table = common.markdown_table(
+    common.report_probe(
+        args, RESULTS, SECTION,
+        'Scans without rings, non-repetitive pattern (`probe_nonrepetitive.py`)',
+        'Cold, one scan per row (1.73 m mount, 280 random elevations x 1,200 azimuths, a random '
+        'fifth of the returns kept: no regular rings); what is set: the script\'s docstring. '
+        'Not used to choose any default.',
         ['field of view', 'scene', 'points', 'this project P / R / F1',
          'Patchwork++ P / R / F1'], rows)
-    text = ('## Scans without rings, non-repetitive pattern (`probe_nonrepetitive.py`)\n\n'
-            + common.machine_markdown(common.command_line()) + '\n'
-            + 'Cold, one scan per row (1.73 m mount, 280 random elevations x 1,200 azimuths, '
-              'a random fifth of the returns kept: no regular rings); what is set: the '
-              'script\'s docstring. Not used to choose any default.\n\n' + table + '\n')
-    print(text)
-    if not args.no_write and not args.set:
-        common.update_results_section(RESULTS, SECTION, text)
 
 
 if __name__ == '__main__':

@@ -308,25 +308,22 @@ def cross_segment_rise(edges: np.ndarray, mean: np.ndarray, max_slope: float,
     return run(compiled, _rise_compiled, _rise_numpy, edges, mean, float(max_slope), span)
 
 
-def neighbour_at_same_range(edges: np.ndarray, values: np.ndarray, shift: int,
-                            span: float) -> np.ndarray:
-    """(M, N + 1) ``values`` of segment m + ``shift`` (rows wrap around) at the r of segment
-    m's bin ``edges``, linear in r between that segment's edges (np.interp; clipped to its first
-    and last edge). ``span``: more than any r."""
+def _rise_numpy(edges, mean, max_slope, span):
+    """The numpy reference of :func:`cross_segment_rise` (``span``: more than any r)."""
     m_count = edges.shape[0]
     # one sorted 1-D table of all rows (row offset by a span larger than any r): np.interp
     # then looks up every segment's edges in its neighbour's row at once
     offset = np.arange(m_count)[:, None] * span
-    rows = (np.arange(m_count) + shift) % m_count
-    query = np.clip(edges, edges[rows, :1], edges[rows, -1:]) + offset[rows]
-    return np.interp(query, (edges + offset).ravel(), values.ravel())
+    flat_r = (edges + offset).ravel()
+    flat_z = mean.ravel()
 
+    def neighbour(shift):
+        rows = (np.arange(m_count) + shift) % m_count
+        query = np.clip(edges, edges[rows, :1], edges[rows, -1:]) + offset[rows]
+        return np.interp(query, flat_r, flat_z)
 
-def _rise_numpy(edges, mean, max_slope, span):
-    """The numpy reference of :func:`cross_segment_rise` (``span``: more than any r)."""
-    m_count = edges.shape[0]
-    ahead = neighbour_at_same_range(edges, mean, 1, span) - mean
-    behind = mean - neighbour_at_same_range(edges, mean, -1, span)
+    ahead = neighbour(1) - mean
+    behind = mean - neighbour(-1)
     rise = np.where(ahead * behind > 0, np.minimum(np.abs(ahead), np.abs(behind)), 0.0)
     cap = max_slope * (2.0 * np.pi / m_count) * edges
     return np.minimum(rise, cap)

@@ -220,7 +220,7 @@ class GroundSurface:
         # the threshold's rule, uncapped (a slope cap of 1e6: finite, so r = 0 stays 0)
         step = cross_segment_rise(self.r, level, _UNCAPPED_SLOPE)
         # a segment without support sits at the prior, whose std (sigma_f) already says it
-        step = np.where(np.isfinite(step) & self._segment_supported[:, None], step, 0.0)
+        step = np.where(self._segment_supported[:, None], step, 0.0)
         return step / (2.0 * np.sqrt(3.0))
 
     @cached_property

@@ -72,7 +72,7 @@ from .diagnostics import ProcessingWindow, diagnostics_array, diagnostics_status
 from ..core.allocator import keep_freed_memory
 from ..core.params import SegmenterParams
 from .pipeline import OUTPUT_SWITCHES, add_surface, process_cloud
-from .shutdown import QuietShutdown
+from .shutdown import QuietShutdown, shutdown_context
 from ..core.segmenter import GroundSegmenter
 from ..core.sensor_frame import NOT_CENTRED
 
@@ -554,7 +554,7 @@ def main(args=None):
         quiet.ignore_signals()  # from here on a signal must not interrupt the clean-up
         if node is not None:
             node.destroy_node()
-        rclpy.try_shutdown()
+        shutdown_context()
         quiet.ignore_signals()  # rclpy restores the handlers it replaced when it shuts down
     if exit_code:
         sys.exit(exit_code)

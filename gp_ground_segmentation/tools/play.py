@@ -19,7 +19,7 @@ import sys
 import time
 from collections import deque
 
-from ..ros.shutdown import QuietShutdown
+from ..ros.shutdown import QuietShutdown, shutdown_context
 
 CLOCK_PERIOD_S = 0.025  # /clock at 40 Hz while waiting between frames (ros2 bag play's default)
 
@@ -193,8 +193,7 @@ def cmd_play(args) -> int:
         quiet.ignore_signals()
         if node is not None:
             node.destroy_node()
-        import rclpy
-        rclpy.try_shutdown(context=context)
+        shutdown_context(context)
     wall = time.monotonic() - t0
     published = player.published if player is not None else 0
     print(f'{prog}: published {published} frame(s) in {wall:.1f} s ({passes} full pass(es))',
@@ -293,8 +292,7 @@ def cmd_hz(args) -> int:
         quiet.ignore_signals()
         if node is not None:
             node.destroy_node()
-        import rclpy
-        rclpy.try_shutdown(context=context)
+        shutdown_context(context)
     print(f'{prog}: summary', file=sys.stderr)
     for topic in topics:
         print(stats[topic].line(topic), flush=True)

@@ -35,7 +35,10 @@ surface is meant to be *the* ground, so its z is the GP mean plus ``ground_offse
 edge, the mean height above the labels' z_hat of the points labelled ground in the two bins
 beside it (points on the ground scatter symmetrically about it), each height clipped to the
 frame's median +- 3 sigma_n so that a few obstacle points called ground cannot drag it; edges
-with no such point get the frame's median. No truth and no tuned constant is involved (3 sigma
+with no such point get the frame's median. That median is taken over an evenly strided sample of
+at most 8192 of the residuals (all of them in a smaller frame): it only centres a band 6 sigma_n
+wide, and the sample's median is within a few millimetres of the full one (half a millisecond
+less on a 124k-point frame). No truth and no tuned constant is involved (3 sigma
 is the usual Gaussian outlier bound).
 
 Everything the labels do not need is computed on first access only: x, y, azimuth, and z_std when
@@ -302,12 +305,13 @@ def ground_offsets(z, z_hat, ground, segment, bin_index, num_segments: int, num_
     """(M, N + 1) ground offset at the bin edges (module docstring) from the labels: over the
     valid points, ``z`` (m), the labels' ground height ``z_hat`` (m), the ``ground`` mask and
     each point's ``segment`` and ``bin_index`` in the grid; ``noise_std`` sigma_n (m) bounds each
-    residual z - z_hat to the frame's median +- 3 sigma_n.
+    residual z - z_hat to the frame's median (of a strided sample, module docstring) +- 3
+    sigma_n.
 
     ``compiled``: one numba kernel (when numba imports) gathers the residuals, selects their
     median and sums them per bin, instead of the numpy reference's gathers, ``np.median`` and
-    bincounts (~1 ms on a 124k-point KITTI scan, a third of the node's budget around
-    ``segment()``); both add the same numbers in the same order, so the outputs are equal.
+    bincounts (0.3 vs 1.3 ms on a 124k-point KITTI scan; 0.6 ms with the median of every
+    residual); both add the same numbers in the same order, so the outputs are equal.
     """
     m, n = int(num_segments), int(num_bins)
     args = (np.asarray(z), np.asarray(z_hat), np.asarray(ground, dtype=bool),
@@ -322,7 +326,8 @@ def _ground_offsets_numpy(z, z_hat, ground, segment, bin_index, m, n, band):
     residual = z[ground].astype(np.float64) - z_hat[ground]
     if residual.size == 0:
         return np.zeros((m, n + 1))
-    centre = float(np.median(residual))
+    stride = max(1, -(-residual.size // _MEDIAN_SAMPLE))  # the sample of the module docstring
+    centre = float(np.median(residual[::stride]))
     return _edge_means_numpy(residual, segment[ground], bin_index[ground], m, n, centre,
                              centre - band, centre + band)
 
@@ -344,7 +349,8 @@ def _ground_offsets_kernel(z, z_hat, ground, segment, bin_index, m, n, band):
     if count == 0:
         return np.zeros((m, n + 1))
     residual = residual[:count]
-    centre = _median_of(residual)
+    stride = max(1, -(-count // _MEDIAN_SAMPLE))  # the reference's sample
+    centre = _median_of(residual[::stride].copy())
     sums = np.zeros(m * n)
     counts = np.zeros(m * n)
     low, high = centre - band, centre + band
@@ -355,6 +361,10 @@ def _ground_offsets_kernel(z, z_hat, ground, segment, bin_index, m, n, band):
     counts = counts.reshape(m, n)
     return _sums_to_edges(sums, counts, m, n, centre)
 
+
+# ground_offsets: the residuals' median is taken over an evenly strided sample of at most this
+# many of them (module docstring)
+_MEDIAN_SAMPLE = 8192
 
 # _median_of: buckets a round of bucketing splits the candidates into; at most this many are
 # sorted outright

@@ -676,7 +676,7 @@ def load_markdown(r: dict) -> str:
         f"Each subscriber process (rclpy, own executor) takes ground, obstacles and "
         f"ground_surface with the node's RELIABLE output QoS; default node parameters "
         f"(publish_ground_surface on). Load average (1, 5, 15 min) when the publishing "
-        f"started: {load}; other helpers' jobs shared the 2 cores. First "
+        f"started: {load} (other jobs may share the 2 cores). First "
         f"{r['warmup_s']:g} s excluded. Stages: handoff = slot wait (subscription callback "
         'to worker), decode, segment, encode (both subset clouds and the surface cloud), '
         'surface (its part of encode), publish (the three publish calls); total = decode + '

@@ -547,8 +547,8 @@ def machine_markdown(command: str) -> str:
             f'{m["load_average"]}; '
             f'Python {m["python"]}, numpy {m["numpy"]}, scipy {m["scipy"]}, '
             f'pypatchworkpp {m["pypatchworkpp"]}, linefit {m["linefit"]}\n'
-            '- The machine is shared with other jobs (tests of other helpers ran at the same '
-            'time): absolute times are noisy; compare methods only as ratios within one run.\n')
+            '- The machine is shared with other jobs (the load average above says how busy it '
+            'was): absolute times are noisy; compare methods only as ratios within one run.\n')
 
 
 def command_line() -> str:

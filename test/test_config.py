@@ -83,7 +83,7 @@ def test_namespaced_section(tmp_path):
 
 
 @pytest.mark.parametrize('body, words', [
-    ('num_bns: 40', ['num_bns', 'unknown']),
+    ('num_bns: 40', ['num_bns', 'unknown', "did you mean 'num_bins'?"]),
     ('max_threshold_m: 1', ['max_threshold_m', 'double', 'decimal']),
     ('num_bins: 40.0', ['num_bins', 'integer']),
     ('density_in_flat_branch: 1', ['density_in_flat_branch', 'bool']),
@@ -102,6 +102,31 @@ def test_bad_values_name_the_key(tmp_path, body, words):
     for word in words:
         assert word in str(info.value)
     assert str(path) in str(info.value)
+
+
+@pytest.mark.parametrize('text, value', [('1e-1', 0.1), ('2.5E-1', 0.25), ('.25e0', 0.25),
+                                         ('+1.5e-1', 0.15)])
+def test_numbers_with_an_exponent_are_doubles_as_for_rcl(tmp_path, text, value):
+    # rcl takes whatever strtod reads as a double; PyYAML alone would give the string '1e-1'
+    path = _write(tmp_path, f'/**:\n  ros__parameters:\n    ground_threshold_m: {text}\n')
+    assert load_params_file(path)[0].ground_threshold_m == value
+    bad = _write(tmp_path, '/**:\n  ros__parameters:\n    num_bins: 1e1\n')
+    with pytest.raises(ParameterConfigError, match='num_bins'):  # a double for an integer
+        load_params_file(bad)
+
+
+def test_sections_rcl_refuses_are_refused_with_the_file_named(tmp_path):
+    # an empty 'ros__parameters:' stops the node (rcl) but the tools took it as no change
+    empty = _write(tmp_path, '/**:\n  ros__parameters:\n')
+    with pytest.raises(ParameterConfigError, match=r"is empty.*'ros__parameters: \{\}'") as info:
+        load_params_file(empty)
+    assert str(empty) in str(info.value)
+    assert load_params_file(_write(tmp_path, '/**:\n  ros__parameters: {}\n'))[0] == \
+        SegmenterParams()
+    bare = _write(tmp_path, 'ground_segmentation:\n  num_bins: 32\n')
+    with pytest.raises(ParameterConfigError, match="go under a 'ros__parameters:' key") as info:
+        load_params_file(bare)
+    assert str(bare) in str(info.value)
 
 
 def test_structure_errors(tmp_path):

@@ -68,6 +68,36 @@ def test_label_count_mismatch(tmp_path):
         read_semantickitti_labels(p)
 
 
+def _scan(n=4000, seed=0):
+    """A plausible KITTI-like scan: ground ring and walls, remission in [0, 1]."""
+    rng = np.random.default_rng(seed)
+    r, a = rng.uniform(3, 60, n), rng.uniform(-np.pi, np.pi, n)
+    return np.column_stack([r * np.cos(a), r * np.sin(a), rng.uniform(-1.8, 2.0, n),
+                            rng.uniform(0, 1, n)]).astype('<f4')
+
+
+@pytest.mark.parametrize('write, words', [
+    (lambda pts, p: pts.astype('<f8').tofile(p), 'beyond 10000 m'),
+    (lambda pts, p: pts[:, :3].copy().tofile(p), 'negative remission'),
+    (lambda pts, p: np.arange(len(pts), dtype='<u4').tofile(p), 'denormal'),
+], ids=['float64', 'xyz_only', 'labels'])
+def test_kitti_bin_in_another_layout_is_refused(tmp_path, write, words):
+    # the sizes still split into 16-byte records: only the values give the layout away
+    points = _scan(4000)
+    points[:, 2] -= 1.0  # ground below the sensor: negative z, as in every real scan
+    path = tmp_path / 'scan.bin'
+    write(points, path)
+    assert path.stat().st_size % 16 == 0
+    with pytest.raises(PointFileError, match=words) as info:
+        read_kitti_bin(path)
+    assert 'float32' in str(info.value) and str(path) in str(info.value)
+    good = tmp_path / 'good.bin'
+    bad_returns = points.copy()
+    bad_returns[:20, 0] = 1e9  # 0.5 % of absurd returns are tolerated
+    bad_returns.tofile(good)
+    assert read_kitti_bin(good).shape == points.shape
+
+
 def test_kitti_bin_truncated(tmp_path):
     p = tmp_path / 'scan.bin'
     p.write_bytes(np.arange(8, dtype='<f4').tobytes() + b'\x00' * 5)

@@ -65,6 +65,15 @@ def test_help_prints_usage_and_does_not_start():
     assert 'listening on' not in out
 
 
+def test_ros_arguments_without_ros_args_are_refused():
+    # rcl ignores a '--params-file' that is not after --ros-args: the node would run with its
+    # defaults without a word
+    code, out = _run(['--params-file', 'config/params.yaml'])
+    assert code == 2 and 'Traceback' not in out, out
+    assert out.strip().splitlines()[-1].endswith('go after --ros-args)'), out
+    assert 'listening on' not in out
+
+
 @pytest.mark.parametrize('make_path', [lambda tmp: tmp / 'missing.yaml', lambda tmp: tmp],
                          ids=['missing', 'directory'])
 def test_unreadable_params_file_is_one_fatal_line(tmp_path, make_path):
@@ -114,6 +123,34 @@ def test_params_file_without_a_section_for_the_node_is_refused(tmp_path):
     fatal = [ln for ln in out.splitlines() if 'FATAL' in ln]
     assert len(fatal) == 1 and "'/seg/ground_segmentation'" in fatal[0] \
         and str(path) in fatal[0], out
+
+
+def test_qos_override_of_a_topic_the_node_does_not_have_is_warned_about(tmp_path):
+    # rclpy applies an override to the resolved name only: with the input remapped, an
+    # override keyed '/points' does nothing, silently; the node says so and still runs.
+    path = _shipped_params_with(tmp_path)
+    doc = yaml.safe_load(path.read_text())
+    (section,) = doc
+    doc[section]['ros__parameters']['qos_overrides'] = {
+        '/points': {'subscription': {'reliability': 'reliable'}},
+        '/ground': {'publisher': {'depth': 3}}}
+    path.write_text(yaml.safe_dump(doc))
+    proc = _start(['--ros-args', '-r', 'points:=/gp_test_remapped', '--params-file', str(path)],
+                  start_new_session=True)
+    try:
+        wait_listening(proc)
+        time.sleep(0.5)
+        os.killpg(proc.pid, signal.SIGINT)
+        out, _ = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 0, out
+    warnings = [ln for ln in out.splitlines() if 'qos_overrides' in ln]
+    assert len(warnings) == 1 and 'WARN' in warnings[0], out
+    assert 'for /points match none' in warnings[0] and '/gp_test_remapped' in warnings[0], out
+    assert '/ground,' not in warnings[0].split('match none')[0]  # /ground's override applies
 
 
 def test_qos_override_of_one_output_leaves_the_others_alone():

@@ -128,7 +128,8 @@ def test_ground_threshold_is_never_capped_silently():
     # issue 10, bug 8: 0.3, 0.5 and 2.0 used to give the same labels (all cut to the 0.3 cap)
     # while the node accepted up to 10. Now a threshold above the cap is refused, and the
     # message says which parameter to change first (ros2 param set takes one at a time).
-    with pytest.raises(ValueError, match='^ground_threshold_m: .*raise max_threshold_m first'):
+    with pytest.raises(ValueError, match=r'^ground_threshold_m: .*raise max_threshold_m too '
+                       r'\(with ros2 param set, first\)'):
         DEFAULTS.replace(ground_threshold_m=2.0)
     raised = DEFAULTS.replace(max_threshold_m=2.0).replace(ground_threshold_m=2.0)
     assert raised.ground_threshold_m == 2.0

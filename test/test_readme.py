@@ -5,6 +5,7 @@ import json
 import re
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from gp_ground_segmentation.ros.config import render_params_table
@@ -52,6 +53,9 @@ def test_readme_figure_is_current():
     assert shown['ground_points'] == int(result.ground_mask.sum()), \
         'docs/kitti00_frame0.png is stale: run docs/make_figures.py'
     assert shown['sigma_f'] == pytest.approx(result.hyperparameters.sigma_f, rel=1e-6)
+    z_std = result.ground_surface.points()[:, 3]
+    assert shown.get('surface_z_std_mean') == pytest.approx(float(np.mean(z_std)), rel=1e-4), \
+        'docs/kitti00_frame0.png is stale (its surface panel): run docs/make_figures.py'
 
 
 def test_readme_names_the_launch_file():

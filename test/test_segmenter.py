@@ -224,6 +224,28 @@ def test_rejects_wrong_shape():
         GroundSegmenter().segment(np.zeros((10, 2)))
 
 
+def test_rejects_what_is_not_real_coordinates():
+    # a structured cloud (what io.read_points_file returns) says how to convert it; complex,
+    # bool and string arrays were cast silently (complex losing its imaginary part)
+    structured = np.zeros(10, dtype=[('x', '<f4'), ('y', '<f4'), ('z', '<f4')])
+    with pytest.raises(ValueError, match=r'structured array .*column_stack'):
+        GroundSegmenter().segment(structured)
+    for bad in (np.ones((10, 3), complex), np.ones((10, 3), bool), np.full((10, 3), '1.0')):
+        with pytest.raises(ValueError, match='real numbers'):
+            GroundSegmenter().segment(bad)
+    assert GroundSegmenter().segment(np.ones((10, 3), np.int16)).valid_mask.all()
+
+
+def test_params_must_be_segmenter_params_and_numpy_scalars_are_numbers():
+    with pytest.raises(TypeError, match=r'SegmenterParams\(\*\*values\)'):
+        GroundSegmenter({})  # was taken for the defaults, silently
+    params = SegmenterParams(num_segments=np.int64(60), ground_threshold_m=np.float32(0.25))
+    seg = GroundSegmenter(params)
+    assert type(seg.params.num_segments) is int and seg.params.ground_threshold_m == 0.25
+    with pytest.raises(ValueError, match='num_segments: expected an integer'):
+        GroundSegmenter(SegmenterParams(num_segments=np.float64(60.0)))
+
+
 def test_timings_and_stats_are_reported(scans):
     _, result = _stream(scans['flat'].points)
     for stage in ('grid', 'lines', 'gp_fit', 'predict', 'label', 'total'):

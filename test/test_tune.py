@@ -120,6 +120,9 @@ def test_tune_reports_cross_validated_f1_and_writes_changed_keys(tuned):
     assert f"tuned {doc['cv_f1_tuned']:.4f}, defaults {doc['cv_f1_defaults']:.4f}" in text
     assert 'ground classes 40,44,48,49,60,72' in text and '8 trial(s) per study' in text
     seg, node = load_params_file(out)
+    # the shipped file's '/**' section: the node in a namespace reads it too
+    assert "'/**':" in text.splitlines()
+    assert load_params_file(out, namespace='/seg')[0] == seg
     defaults = tune.search_space_defaults()
     for name, value in doc['tuned'].items():
         assert getattr(seg, name) == value and value != defaults[name]
@@ -165,6 +168,8 @@ def test_one_scene_says_there_is_no_cross_validation(tmp_path, capsys):
     (['--ground-classes', '40,x'], 'comma-separated integers'),
     (['--trials', '0'], '--trials must be at least 1'),
     (['--scene-of', '(('], 'not a regular expression'),
+    (['--scene-of', r'xyz(\d+)'], 'matches none of the frame names'),
+    (['--ground-classes', '999'], 'no frame has a labelled point in the ground classes 999'),
 ])
 def test_bad_input_one_line(extra, words, tmp_path, capsys):
     from gp_ground_segmentation.tools.cli import main
@@ -172,6 +177,18 @@ def test_bad_input_one_line(extra, words, tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and words in err[0], err
     assert not (tmp_path / 'p.yaml').exists()
+
+
+@needs_data
+def test_an_existing_out_file_needs_force(tmp_path, capsys):
+    from gp_ground_segmentation.tools.cli import main
+    out = tmp_path / 'p.yaml'
+    out.write_text('# an earlier result\n')
+    assert main(['tune', str(SEQ00), '--trials', '1', '--out', str(out)]) == 2
+    assert 'pass --force' in capsys.readouterr().err
+    assert out.read_text() == '# an earlier result\n'
+    assert main(['tune', str(SEQ00), '--trials', '1', '--out', str(out), '--force']) == 0
+    assert 'ros__parameters' in out.read_text()
 
 
 @needs_data

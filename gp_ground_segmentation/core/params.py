@@ -14,6 +14,8 @@ import dataclasses
 import math
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from .sensor_frame import SensorPose
 
 
@@ -247,6 +249,14 @@ class SegmenterParams:
         0.0, 'pitch of the cloud\'s frame against level ground (rad, about y after roll; '
         'positive = x axis pointing down)', -math.pi / 2, math.pi / 2)
 
+    def __post_init__(self):
+        # numpy scalars (np.int64(120), np.float32(0.2): what arrays and configs hand out) as the
+        # Python numbers they stand for, so that validate() judges the value, not its class
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, np.generic) and value.dtype.kind in 'biuf':
+                object.__setattr__(self, f.name, value.item())
+
     @property
     def sensor_pose(self) -> SensorPose:
         """Where the sensor is in the cloud's frame and how that frame is tilted."""
@@ -270,8 +280,8 @@ class SegmenterParams:
             # back to it silently (ros2 param set changes one parameter at a time)
             raise ValueError(f'ground_threshold_m: {self.ground_threshold_m!r} is above '
                              f'max_threshold_m {self.max_threshold_m!r}, the cap on the total '
-                             'threshold; to raise the threshold, raise max_threshold_m first; '
-                             'to lower the cap, lower ground_threshold_m first')
+                             'threshold; raise max_threshold_m too (with ros2 param set, '
+                             'first), or lower ground_threshold_m to lower the cap')
         if self.structure_rise_m >= self.structure_max_height_m:
             raise ValueError(f'structure_rise_m: {self.structure_rise_m!r} must be below '
                              f'structure_max_height_m {self.structure_max_height_m!r}; raise '

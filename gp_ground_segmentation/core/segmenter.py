@@ -444,7 +444,12 @@ class GroundSegmenter:
         """``backend`` of the GP factorisation: 'numba', 'numpy' or 'auto' (numba if it
         imports). If the compiled kernel fails at run time this segmenter uses numpy from then
         on (``backend`` tells which one is in use)."""
-        self._params = (params or SegmenterParams()).validate()
+        if params is None:
+            params = SegmenterParams()
+        elif not isinstance(params, SegmenterParams):
+            raise TypeError(f'params must be a SegmenterParams, got {type(params).__name__}; '
+                            'for a dict of values use SegmenterParams(**values)')
+        self._params = params.validate()
         self._backend = resolve_backend(backend)
         if hyperparameters is None:
             p = self._params
@@ -748,6 +753,12 @@ class GroundSegmenter:
                  'optimizer_iterations': 0, 'optimizer_failures': 0,
                  'log_marginal_likelihood': float('nan'), 'structure_feet': 0}
         pts = np.asarray(points)
+        if pts.dtype.names is not None:
+            raise ValueError(f'points must be an (N, >=3) numeric array, got a structured array '
+                             f'with fields {pts.dtype.names}; pass np.column_stack((points["x"], '
+                             'points["y"], points["z"]))')
+        if pts.dtype.kind not in 'fiu':
+            raise ValueError(f'points must be real numbers (float, int), got dtype {pts.dtype}')
         if pts.ndim != 2 or pts.shape[1] < 3:
             raise ValueError(f'points must be an (N, >=3) array, got shape {pts.shape}')
         # float32 input (every LiDAR driver) is processed in float32 up to the candidates: the

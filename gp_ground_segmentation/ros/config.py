@@ -15,6 +15,7 @@ bool as ``true``/``false``. The errors say which key and which type was expected
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import re
 import textwrap
 from pathlib import Path
@@ -23,8 +24,8 @@ from ..core.params import SegmenterParams, describe_params, value_problem
 
 __all__ = ['NODE_NAME', 'NODE_PARAMS', 'PARAMS_FILE_KEY', 'ParameterConfigError',
            'all_param_specs', 'check_param_value', 'describe_node_params', 'is_ros_builtin',
-           'load_params_file', 'node_param_defaults', 'render_param_overrides',
-           'render_params_table', 'render_params_yaml', 'split_params',
+           'load_params_file', 'node_param_defaults', 'qos_override_topics',
+           'render_param_overrides', 'render_params_table', 'render_params_yaml', 'split_params',
            'validate_node_params']
 
 NODE_NAME = 'ground_segmentation'
@@ -102,8 +103,10 @@ def check_param_value(name: str, value, specs: dict | None = None) -> None:
     """Raise ParameterConfigError unless ``value`` has the declared type and lies in range."""
     specs = all_param_specs() if specs is None else specs
     if name not in specs:
+        close = difflib.get_close_matches(name, list(specs), n=1)
+        hint = f"did you mean '{close[0]}'? " if close else ''
         raise ParameterConfigError(
-            f"unknown parameter '{name}' (known: {', '.join(sorted(specs))})")
+            f"unknown parameter '{name}' ({hint}known: {', '.join(sorted(specs))})")
     spec = specs[name]
     problem = value_problem(value, spec['type'], spec.get('min'), spec.get('max'))
     if problem:
@@ -145,11 +148,14 @@ def _node_sections(doc: dict, path: tuple = ()):
         if not isinstance(value, dict):
             raise ParameterConfigError(
                 f"'{'/'.join(path + (str(key),))}': expected a mapping (node name -> "
-                f"ros__parameters), got {type(value).__name__}")
+                f"ros__parameters), got {type(value).__name__}; parameters go under a "
+                "'ros__parameters:' key of the node's section")
         if 'ros__parameters' in value:
             params = value['ros__parameters']
-            if params is None:
-                params = {}
+            if params is None:  # rcl: "Cannot have a value before ros__parameters"
+                raise ParameterConfigError(
+                    f"'{key}/ros__parameters' is empty, which the node (rcl) refuses; write "
+                    "'ros__parameters: {}' or put parameters under it")
             if not isinstance(params, dict):
                 raise ParameterConfigError(
                     f"'{key}/ros__parameters' must be a mapping of parameter names to values")
@@ -187,34 +193,7 @@ def load_params_file(path, node_name: str = NODE_NAME, namespace: str = '/'):
     or an out-of-range value raises ParameterConfigError (a ValueError) naming the key.
     Node params missing from the file get their defaults.
     """
-    import yaml  # local: the core does not need PyYAML
-
-    path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as exc:
-        raise ParameterConfigError(f'cannot read parameter file {path}: {exc}') from None
-    try:
-        doc = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise ParameterConfigError(f'{path}: not valid YAML: {exc}') from None
-    if doc is None:
-        doc = {}
-    if not isinstance(doc, dict):
-        raise ParameterConfigError(f'{path}: top level must be a mapping of node names')
-    values: dict = {}
-    matched = False
-    for section, params in _node_sections(doc):
-        if not _matches(section, node_name, namespace):
-            continue
-        matched = True
-        _flatten('', params, values, str(path))
-    if doc and not matched:
-        ns = namespace.strip('/')
-        fqn = ('/' + ns if ns else '') + '/' + node_name
-        raise ParameterConfigError(
-            f"{path}: no section for node '{fqn}' (its keys: {', '.join(map(str, doc))}); "
-            f"use '/**:' (any node, any namespace) or '{fqn}:' with 'ros__parameters:' under it")
+    values = _file_values(path, node_name, namespace)
     specs = all_param_specs()
     for name, value in values.items():
         if is_ros_builtin(name):
@@ -229,6 +208,75 @@ def load_params_file(path, node_name: str = NODE_NAME, namespace: str = '/'):
     except ValueError as exc:
         raise ParameterConfigError(f'{path}: {exc}') from None
     return seg, validate_node_params(node_values)
+
+
+def qos_override_topics(path, node_name: str = NODE_NAME, namespace: str = '/') -> set:
+    """The topics named by the ``qos_overrides`` in a parameter file's sections for this node
+    (keys ``qos_overrides./TOPIC.publisher|subscription.POLICY``). rclpy applies an override
+    only to the topic's resolved name (after remapping and namespace) and ignores the others
+    without a word; the node warns about those."""
+    topics = set()
+    for name in _file_values(path, node_name, namespace):
+        if name.startswith('qos_overrides.'):
+            # topic names have no dots: the last two parts are the entity and the policy
+            topics.add(name[len('qos_overrides.'):].rsplit('.', 2)[0])
+    return topics
+
+
+# rcl reads a scalar that strtod takes whole as a double: '1e-1' and '1.5e3' too, which YAML 1.1
+# (PyYAML) leaves strings (its floats need a '.' and a signed exponent)
+_EXPONENT_FLOAT = re.compile(r'^[-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)[eE][-+]?[0-9]+$')
+
+
+def _ros_yaml_loader():
+    """PyYAML's SafeLoader reading numbers with an exponent as floats, as rcl does."""
+    import yaml
+
+    class Loader(yaml.SafeLoader):
+        pass
+
+    Loader.add_implicit_resolver('tag:yaml.org,2002:float', _EXPONENT_FLOAT,
+                                 list('-+0123456789.'))
+    return Loader
+
+
+def _file_values(path, node_name: str, namespace: str) -> dict:
+    """The flattened ``ros__parameters`` of a parameter file's sections for this node, merged
+    in file order (load_params_file); ParameterConfigError when unreadable, not YAML or without
+    a section for the node."""
+    import yaml  # local: the core does not need PyYAML
+
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise ParameterConfigError(f'cannot read parameter file {path}: {exc}') from None
+    try:
+        doc = yaml.load(text, Loader=_ros_yaml_loader())  # noqa: S506 - a SafeLoader
+    except yaml.YAMLError as exc:
+        raise ParameterConfigError(f'{path}: not valid YAML: {exc}') from None
+    if doc is None:
+        doc = {}
+    if not isinstance(doc, dict):
+        raise ParameterConfigError(f'{path}: top level must be a mapping of node names')
+    values: dict = {}
+    matched = False
+    try:
+        sections = list(_node_sections(doc))
+    except ParameterConfigError as exc:
+        raise ParameterConfigError(f'{path}: {exc}') from None
+    for section, params in sections:
+        if not _matches(section, node_name, namespace):
+            continue
+        matched = True
+        _flatten('', params, values, str(path))
+    if doc and not matched:
+        ns = namespace.strip('/')
+        fqn = ('/' + ns if ns else '') + '/' + node_name
+        raise ParameterConfigError(
+            f"{path}: no section for node '{fqn}' (its keys: {', '.join(map(str, doc))}); "
+            f"use '/**:' (any node, any namespace) or '{fqn}:' with 'ros__parameters:' under it")
+    return values
 
 
 def _yaml_scalar(value) -> str:
@@ -287,14 +335,16 @@ def render_params_yaml(section_key: str = PARAMS_FILE_KEY) -> str:
     return '\n'.join(lines) + '\n'
 
 
-def render_param_overrides(values: dict, header_lines=(), node_name: str = NODE_NAME) -> str:
+def render_param_overrides(values: dict, header_lines=(),
+                           section_key: str = PARAMS_FILE_KEY) -> str:
     """A parameter file with only ``values`` (checked like load_params_file), in the layout of
-    config/params.yaml, under a comment header (e.g. what a tuner tuned on)."""
+    config/params.yaml ('/**': the node in any namespace), under a comment header (e.g. what
+    a tuner tuned on)."""
     specs = all_param_specs()
     for name, value in values.items():
         check_param_value(name, value, specs)
     lines = ['# ' + part for text in header_lines for part in textwrap.wrap(text, 96)]
-    lines += [f'{node_name}:', '  ros__parameters:' + ('' if values else ' {}')]
+    lines += [f"'{section_key}':", '  ros__parameters:' + ('' if values else ' {}')]
     lines += [f'    {name}: {_yaml_scalar(value)}' for name, value in values.items()]
     return '\n'.join(lines) + '\n'
 

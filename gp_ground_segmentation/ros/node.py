@@ -67,7 +67,8 @@ from sensor_msgs.msg import PointCloud2
 
 from .cloud import CloudFormatError
 from .config import (NODE_NAME, NODE_PARAMS, ParameterConfigError, all_param_specs,
-                     check_param_value, is_ros_builtin, load_params_file, split_params)
+                     check_param_value, is_ros_builtin, load_params_file, qos_override_topics,
+                     split_params)
 from .diagnostics import ProcessingWindow, diagnostics_array, diagnostics_status
 from ..core.allocator import keep_freed_memory
 from ..core.params import SegmenterParams
@@ -231,6 +232,13 @@ class GroundSegmentationNode(Node):
     def segmenter(self):
         """The segmenter object the worker uses (read it, do not call it from other threads)."""
         return self._segmenter
+
+    @property
+    def topic_names(self) -> tuple:
+        """Resolved names of the input and the three output topics (the ones that take
+        ``qos_overrides``), after remapping and namespace."""
+        return (self._sub.topic_name, self._pub_ground.topic_name,
+                self._pub_obstacles.topic_name, self._pub_surface.topic_name)
 
     @property
     def declared_params(self) -> SegmenterParams:
@@ -468,7 +476,8 @@ USAGE = """ground_segmentation_node [--help] [--ros-args ...]
 Ground/obstacle split of LiDAR point clouds with a Gaussian-process ground model (ROS 2 node).
 
 Topics (relative names): points (sub, PointCloud2, sensor-data QoS), ground and obstacles (pub,
-PointCloud2), /diagnostics. The clouds must be in the sensor's frame, or give its pose with the
+PointCloud2), ground_surface (pub, PointCloud2 x, y, z, z_std, while subscribed),
+/diagnostics. The clouds must be in the sensor's frame, or give its pose with the
 sensor_* parameters (README "Frames").
 
 Examples:
@@ -512,8 +521,18 @@ def _check_params_file_readable(path: str) -> None:
 
 def _check_params_file_sections(path: str, node) -> None:
     """A params file with no section for this node would be ignored silently by rcl (e.g. a
-    'ground_segmentation:' key when the node runs in a namespace): refuse to start instead."""
-    load_params_file(path, node.get_name(), node.get_namespace())
+    'ground_segmentation:' key when the node runs in a namespace): refuse to start instead.
+    QoS overrides of topics this node does not have (rclpy ignores them silently; usually the
+    name before remapping, '/points' for a node remapped to '/velodyne_points') get a warning:
+    not an error, as a '/**' section may hold other nodes' overrides."""
+    name, namespace = node.get_name(), node.get_namespace()
+    load_params_file(path, name, namespace)
+    unused = qos_override_topics(path, name, namespace) - set(node.topic_names)
+    if unused:
+        node.get_logger().warning(
+            f"{path}: qos_overrides for {', '.join(sorted(unused))} match none of this node's "
+            f"topics ({', '.join(node.topic_names)}) and are ignored; the key is the resolved "
+            'topic name, after remapping and namespace')
 
 
 def main(args=None):
@@ -522,7 +541,10 @@ def main(args=None):
     parser = argparse.ArgumentParser(prog='ground_segmentation_node', usage=USAGE,
                                      add_help=True)
     plain_args, params_files = _split_command_line(argv[1:])
-    parser.parse_known_args(plain_args)  # --help prints the usage and exits here
+    _, unknown = parser.parse_known_args(plain_args)  # --help prints the usage and exits here
+    if unknown:  # e.g. '--params-file x' without --ros-args: rcl would ignore it silently
+        parser.error(f"unrecognized arguments: {' '.join(unknown)} (ROS arguments such as "
+                     '--params-file, -p and -r go after --ros-args)')
     logger = rclpy.logging.get_logger(NODE_NAME)
     # the process is the node's: keep each frame's freed memory for the next frame (about
     # half of segment()'s time went to page faults without it; core/allocator.py)

@@ -21,6 +21,7 @@ from __future__ import annotations
 import hashlib
 import math
 import os
+import re
 import shutil
 import sys
 import time
@@ -73,14 +74,31 @@ class InputFrame:
     msg: object
 
 
-def normalize_topic(topic: Optional[str]) -> Optional[str]:
-    """Bag topics are absolute: 'velodyne_points' means '/velodyne_points'."""
+def _about(path, err: BaseException) -> str:
+    """One line on ``err`` that names ``path`` once (io's errors already start with it)."""
+    text = _one_line(err)
+    return text if str(path) in text else f'{path}: {text}'
+
+
+# A fully qualified ROS 2 topic name: '/'-separated tokens of letters, digits and '_' that do
+# not start with a digit (rcl's rules without the '~' and '{}' substitutions, which a bag's
+# topics never hold)
+_TOPIC_NAME = re.compile(r'(/[A-Za-z_][A-Za-z0-9_]*)+')
+
+
+def normalize_topic(topic: Optional[str], what: str = 'topic') -> Optional[str]:
+    """Bag topics are absolute: 'velodyne_points' means '/velodyne_points'. BagError (one
+    line) for a name that is not a valid ROS 2 topic name (``what`` names the option)."""
     if topic is None:
         return None
     topic = topic.strip()
     if not topic or topic == '/':
-        raise BagError('empty topic name')
-    return topic if topic.startswith('/') else '/' + topic
+        raise BagError(f'empty {what} name')
+    topic = topic if topic.startswith('/') else '/' + topic
+    if not _TOPIC_NAME.fullmatch(topic):
+        raise BagError(f'{what} {topic!r} is not a valid ROS 2 topic name (tokens of letters, '
+                       "digits and '_' separated by single '/', none starting with a digit)")
+    return topic
 
 
 def is_point_file(path: Path) -> bool:
@@ -230,7 +248,7 @@ class FrameSource:
             try:
                 msg, stamp = _pointfile_cloud(path, i, self.frame_id)
             except (PointFileError, OSError, ValueError) as err:
-                raise BagError(f'{path}: {_one_line(err)}') from None
+                raise BagError(_about(path, err)) from None
             yield InputFrame(i, stamp, msg)
 
     def _iter_bag(self) -> Iterator[InputFrame]:
@@ -299,7 +317,7 @@ def read_frame(spec: str, topic: Optional[str] = None):
         try:
             msg, _ = _pointfile_cloud(path, 0)
         except (PointFileError, OSError) as err:
-            raise BagError(f'{path}: {_one_line(err)}') from None
+            raise BagError(_about(path, err)) from None
         return msg, str(path)
     index = 0 if index is None else index
     with FrameSource([path], topic) as source:
@@ -412,6 +430,9 @@ def load_params(params_file: Optional[str]):
     if params_file is None:
         return SegmenterParams(), node_param_defaults()
     path = Path(params_file)
+    if path.is_dir():
+        raise BagError(f'{path} is a directory; give the parameter file (e.g. '
+                       'config/params.yaml)')
     if not path.is_file():
         raise BagError(f'{path}: parameter file not found')
     return load_params_file(str(path))
@@ -451,6 +472,8 @@ def _check_output(out: Path, force: bool, inputs: list[Path]) -> None:
         rp = p.resolve()
         if rp == resolved or resolved in rp.parents:
             raise BagError(f'output {out} would overwrite the input {p}')
+        if rp.is_dir() and rp in resolved.parents:  # a bag written into the input bag
+            raise BagError(f'output {out} lies inside the input {p}; write it elsewhere')
     if out.exists() or out.is_symlink():
         if not force:
             raise BagError(f'{out} exists; pass --force to overwrite it')
@@ -522,6 +545,10 @@ def replay(inputs: Sequence, out_bag, *, topic: Optional[str] = None,
     outputs = {name: bool(node_params[name]) for name in OUTPUT_SWITCHES}
     summary = ReplaySummary(output=str(out))
     t_start = time.perf_counter()
+    if output_prefix is not None and output_prefix.strip('/'):  # '' or '/': the root
+        output_prefix = normalize_topic(output_prefix.rstrip('/'), '--output-prefix')
+    elif output_prefix is not None:
+        output_prefix = ''
     with FrameSource(inputs, topic, max_frames, frame_id) as source:
         _check_output(out, force, source.paths)
         summary.topic, summary.note = source.topic, source.note
@@ -537,7 +564,6 @@ def replay(inputs: Sequence, out_bag, *, topic: Optional[str] = None,
             writer = Writer(tmp, version=9, storage_plugin=plugin)
             with writer:
                 prefix = source.topic if output_prefix is None else output_prefix
-                prefix = '/' + prefix.strip('/') if prefix.strip('/') else ''
                 conn_ground = writer.add_connection(f'{prefix}/ground', POINTCLOUD2,
                                                     typestore=typestore)
                 conn_obst = writer.add_connection(f'{prefix}/obstacles', POINTCLOUD2,

@@ -4,9 +4,11 @@
 Subcommands:
 
 * ``eval FILE...``     segment point files (.bin/.pcd), bag frames (BAG:INDEX) or whole bags; print
-  per-frame ground precision/recall/F1 against SemanticKITTI labels (when given) and timings.
-* ``replay IN OUT``    bag (or point files) in -> ROS 2 bag with <topic>/ground, <topic>/obstacles
-  and /diagnostics out, using the node's pipeline and parameter file.
+  per-frame ground precision/recall/F1 against labels (when given; SemanticKITTI classes, or
+  --dataset rellis3d, or any --ground-classes) and timings.
+* ``replay IN OUT``    bag (or point files) in -> ROS 2 bag with <topic>/ground, <topic>/obstacles,
+  <topic>/ground_surface (publish_ground_surface on, the default) and /diagnostics out, using
+  the node's pipeline and parameter file.
 * ``plot FRAME``       side view of one angular segment + bird's-eye view of the frame (PNG).
 * ``make-sample``      re-write the first frames of a bag as a small compressed mcap (data/).
 * ``batch IN... --out DIR``  replay many inputs, in-process or on Dask (tools/batch.py).
@@ -58,6 +60,50 @@ def _expected_errors() -> tuple:
 
 
 # ---------------------------------------------------------------------------------------------
+# label classes (eval, tune)
+# ---------------------------------------------------------------------------------------------
+
+def add_label_class_arguments(p) -> None:
+    """--dataset / --ground-classes / --ignore-classes: which label classes are ground."""
+    from .evaluation import DATASET_CLASSES
+    p.add_argument('--dataset', choices=sorted(DATASET_CLASSES), default='semantickitti',
+                   help='label ontology: its ground and ignored classes (default semantickitti; '
+                   'rellis3d for RELLIS-3D .label files)')
+    p.add_argument('--ground-classes', metavar='C,C,...', help='override the ground classes')
+    p.add_argument('--ignore-classes', metavar='C,C,...', help='override the ignored classes')
+
+
+def label_classes(args) -> tuple:
+    """(ground classes, ignored classes) of add_label_class_arguments' options."""
+    from .evaluation import DATASET_CLASSES
+    ground, ignored = DATASET_CLASSES[args.dataset]
+    if args.ground_classes:
+        ground = _class_list(args.ground_classes)
+    if args.ignore_classes:
+        ignored = _class_list(args.ignore_classes)
+    return tuple(ground), tuple(ignored)
+
+
+def _class_list(text: str) -> tuple:
+    try:
+        return tuple(sorted({int(v) for v in text.split(',') if v.strip()}))
+    except ValueError:
+        raise CliError(f'class list {text!r}: expected comma-separated integers, e.g. '
+                       f'40,44,48') from None
+
+
+def no_ground_note(name: str, labels: np.ndarray, ground: tuple, ignored: tuple):
+    """A one-line note when no evaluated label of a frame is a ground class (labels of another
+    data set's ontology score 0 without it), else None."""
+    from .evaluation import labelled_ground_truth
+    truth, evaluated = labelled_ground_truth(labels, ground, ignored)
+    if np.any(truth & evaluated):
+        return None
+    return (f'{name}: no labelled point is in the ground classes {",".join(map(str, ground))}; '
+            'labels of another data set? (--dataset rellis3d, --ground-classes)')
+
+
+# ---------------------------------------------------------------------------------------------
 # eval
 # ---------------------------------------------------------------------------------------------
 
@@ -69,7 +115,10 @@ def _eval_frames(inputs, topic):
         if path.exists() and not (path.is_file() and is_point_file(path)):
             with FrameSource([path], topic) as source:
                 for frame in source:
-                    yield f'{path}:{frame.index}', frame.msg
+                    # a directory of point files: each frame by its file (the --labels order)
+                    name = (str(source.paths[frame.index]) if source.kind == 'files'
+                            else f'{path}:{frame.index}')
+                    yield name, frame.msg
         else:
             msg, name = read_frame(spec, topic)
             yield name, msg
@@ -81,15 +130,45 @@ def _nan_to_none(value):
     return value
 
 
+def _print_eval_row(row: dict, ground: tuple, repeat: int) -> None:
+    """The text lines of one ``eval`` frame."""
+    share = row['ground_share']
+    print(f"{row['input']}: {row['points']} points, {row['valid']} valid, ground share "
+          f"{share if share is None else format(share, '.3f')}")
+    if 'metrics' in row:
+        m = row['metrics']
+        fmt = (lambda v: 'n/a' if v is None else f'{v:.4f}')
+        print(f"  ground precision {fmt(m['precision'])}  recall {fmt(m['recall'])}  "
+              f"F1 {fmt(m['f1'])}  (TP {m['tp']} FP {m['fp']} FN {m['fn']} TN {m['tn']}, "
+              f"{m['evaluated_points']} labelled points; ground classes "
+              f"{','.join(map(str, ground))})")
+    t = row['timings_ms']
+    order = ('decode', 'grid', 'lines', 'gp_fit', 'predict', 'label', 'structure', 'segment',
+             'encode')
+    names = [s for s in order if s in t] + sorted(set(t) - set(order) - {'total'})
+    stages = '  '.join(f'{s} {t[s]:.1f}' for s in names)
+    rep = f' (median of {repeat})' if repeat > 1 else ''
+    print(f"  ms{rep}: total {t.get('total', float('nan')):.1f}  [{stages}]")
+    th = row['hyperparameters']
+    print(f"  theta: sigma_f {th['sigma_f']:.4g} m, gain {th['gain']:.4g}, "
+          f"sigma_n {th['sigma_n']:.4g} m")
+
+
 def cmd_eval(args) -> int:
     from .bag import load_segmenter_params, warm_up
-    from .evaluation import ground_metrics
+    from .evaluation import SEMANTIC_KITTI, labelled_ground_truth, truth_metrics
     from .io import read_semantickitti_labels
     from ..ros.pipeline import frame_timings, process_cloud
     from ..core.segmenter import GroundSegmenter
 
     if args.repeat < 1:
         raise CliError('--repeat must be at least 1')
+    ground, ignored = label_classes(args)
+    if args.vegetation_ground:
+        if args.dataset != 'semantickitti':
+            raise CliError('--vegetation-ground adds SemanticKITTI class 70; with '
+                           f'--dataset {args.dataset} give --ground-classes instead')
+        ground = tuple(sorted(set(ground) | {SEMANTIC_KITTI.vegetation}))
     params = load_segmenter_params(args.params)
     labels_files = args.labels or []
     segmenter = GroundSegmenter(params)
@@ -120,40 +199,23 @@ def cmd_eval(args) -> int:
                                f'--labels file per frame')
             labels = read_semantickitti_labels(labels_files[k], expected_points=row['points'])
             row['labels'] = str(labels_files[k])
+            note = no_ground_note(name, labels, ground, ignored)
+            if note:
+                print(f'gp-ground-seg eval: note: {note}', file=sys.stderr)
+            truth, evaluated = labelled_ground_truth(labels, ground, ignored)
             row['metrics'] = {key: _nan_to_none(v) for key, v in
-                              ground_metrics(res.ground_mask, labels,
-                                             args.vegetation_ground).items()}
+                              truth_metrics(res.ground_mask, truth, evaluated).items()}
         frames.append(row)
+        if not args.json:  # as it comes: a bad frame later does not lose this one
+            _print_eval_row(row, ground, args.repeat)
         k += 1
     if labels_files and len(labels_files) != k:
         raise CliError(f'{len(labels_files)} label file(s) given for {k} frame(s)')
     if args.json:
         print(json.dumps({'frames': frames, 'params_file': args.params,
                           'vegetation_is_ground': args.vegetation_ground,
-                          'ground_classes': 'road parking sidewalk other-ground lane-marking '
-                                            'terrain' + (' vegetation' if args.vegetation_ground
-                                                         else '')}, indent=2))
-        return 0
-    for row in frames:
-        share = row['ground_share']
-        print(f"{row['input']}: {row['points']} points, {row['valid']} valid, ground share "
-              f"{share if share is None else format(share, '.3f')}")
-        if 'metrics' in row:
-            m = row['metrics']
-            fmt = (lambda v: 'n/a' if v is None else f'{v:.4f}')
-            print(f"  ground precision {fmt(m['precision'])}  recall {fmt(m['recall'])}  "
-                  f"F1 {fmt(m['f1'])}  (TP {m['tp']} FP {m['fp']} FN {m['fn']} TN {m['tn']}, "
-                  f"{m['evaluated_points']} labelled points; vegetation = "
-                  f"{'ground' if args.vegetation_ground else 'non-ground'})")
-        t = row['timings_ms']
-        order = ('decode', 'grid', 'lines', 'gp_fit', 'predict', 'label', 'segment', 'encode')
-        names = [s for s in order if s in t] + sorted(set(t) - set(order) - {'total'})
-        stages = '  '.join(f'{s} {t[s]:.1f}' for s in names)
-        rep = f' (median of {args.repeat})' if args.repeat > 1 else ''
-        print(f"  ms{rep}: total {t.get('total', float('nan')):.1f}  [{stages}]")
-        th = row['hyperparameters']
-        print(f"  theta: sigma_f {th['sigma_f']:.4g} m, gain {th['gain']:.4g}, "
-              f"sigma_n {th['sigma_n']:.4g} m")
+                          'dataset': args.dataset, 'ground_classes': list(ground),
+                          'ignored_classes': list(ignored)}, indent=2))
     return 0
 
 
@@ -243,7 +305,9 @@ def build_parser() -> argparse.ArgumentParser:
                        'stage.')
     p.add_argument('files', nargs='+', metavar='FILE', help='.bin, .pcd, BAG:INDEX or BAG')
     p.add_argument('--labels', nargs='+', metavar='FILE.label',
-                   help='SemanticKITTI .label file(s), one per frame in order')
+                   help='.label file(s) (uint32 per point, class in the low 16 bits), one per '
+                   'frame in order')
+    add_label_class_arguments(p)
     p.add_argument('--params', metavar='YAML', help='node parameter file (config/params.yaml)')
     p.add_argument('--topic', default=None, help='PointCloud2 topic for bag inputs '
                    '(default /velodyne_points)')
@@ -256,12 +320,12 @@ def build_parser() -> argparse.ArgumentParser:
                    'variant); default: non-ground')
     p.set_defaults(func=cmd_eval)
 
-    p = sub.add_parser('replay', help='bag in -> ground/obstacles/diagnostics bag out',
+    p = sub.add_parser('replay', help='bag in -> ground/obstacles/surface/diagnostics bag out',
                        description='Segment every PointCloud2 of a bag (ROS 2 mcap/sqlite3 '
                        'directory or file, ROS 1 .bag) or of .bin/.pcd files (stamps i*0.1 s '
                        'from 0, --frame-id) with the node pipeline, and write a ROS 2 bag with '
-                       '<topic>/ground, <topic>/obstacles (see --output-prefix) and '
-                       '/diagnostics.')
+                       '<topic>/ground, <topic>/obstacles, <topic>/ground_surface (unless '
+                       'publish_ground_surface is false; see --output-prefix) and /diagnostics.')
     p.add_argument('inputs', nargs='+', metavar='IN ... OUT_BAG',
                    help='input bag, point files or a directory of them; last: the output bag')
     p.add_argument('--topic', default=None,
@@ -272,9 +336,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--force', action='store_true', help='overwrite OUT_BAG if it exists')
     p.add_argument('--max-frames', type=int, metavar='K', help='stop after K frames')
     p.add_argument('--output-prefix', metavar='PREFIX', default=None,
-                   help='output topics PREFIX/ground and PREFIX/obstacles (default: the input '
-                   "topic, so outputs sit beside their input; '' gives /ground and /obstacles "
-                   'like the node in the root namespace)')
+                   help='output topics PREFIX/ground, PREFIX/obstacles and PREFIX/ground_surface '
+                   "(default: the input topic, so outputs sit beside their input; '' gives "
+                   '/ground, /obstacles and /ground_surface like the node in the root '
+                   'namespace)')
     add_frame_id_option(p)
     p.set_defaults(func=cmd_replay)
 

@@ -42,7 +42,39 @@ def read_kitti_bin(path):
     if len(raw) % 16:
         raise _err(path, f'size {len(raw)} bytes is not a multiple of 16 (4 float32 per point); '
                          'truncated or not a KITTI .bin')
-    return np.frombuffer(raw, dtype='<f4').astype(np.float32).reshape(-1, 4)
+    points = np.frombuffer(raw, dtype='<f4').astype(np.float32).reshape(-1, 4)
+    _check_kitti_values(path, points)
+    return points
+
+
+# A KITTI .bin holds float32 x, y, z in metres and a remission >= 0. Another layout read as one
+# (float64 values, x, y, z without the 4th value, a .label file) gives coordinates beyond any
+# LiDAR's range or denormal, or negative "remissions", in a large share of the points; a real
+# scan has none (a few bad returns are tolerated).
+_MAX_PLAUSIBLE_M = 1e4
+_MIN_PLAUSIBLE_M = 1e-20  # below this a nonzero coordinate is a bit pattern, not a distance
+_MAX_IMPLAUSIBLE_SHARE = 0.01
+_MAX_NEGATIVE_REMISSION_SHARE = 0.05
+
+
+def _check_kitti_values(path, points: np.ndarray) -> None:
+    """PointFileError when ``points`` (N, 4) do not look like KITTI x, y, z, remission."""
+    xyz = points[:, :3]
+    finite = np.isfinite(xyz).all(axis=1)
+    xyz = xyz[finite]
+    if xyz.shape[0] == 0:
+        return
+    magnitude = np.abs(xyz)
+    odd = (magnitude > _MAX_PLAUSIBLE_M) | ((magnitude > 0) & (magnitude < _MIN_PLAUSIBLE_M))
+    odd_share = float(np.mean(odd.any(axis=1)))
+    remission = points[finite, 3]
+    negative_share = float(np.mean(remission < 0))
+    if odd_share > _MAX_IMPLAUSIBLE_SHARE or negative_share > _MAX_NEGATIVE_REMISSION_SHARE:
+        raise _err(path, f'does not look like float32 x, y, z, remission: {100 * odd_share:.0f} '
+                         f'% of the points lie beyond {_MAX_PLAUSIBLE_M:g} m or have denormal '
+                         f'coordinates and {100 * negative_share:.0f} % have a negative '
+                         'remission; float64 files or files of 3 values per point must be '
+                         'converted to 4 float32 values per point')
 
 
 def read_semantickitti_labels(path, expected_points=None):

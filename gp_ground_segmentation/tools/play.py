@@ -72,6 +72,18 @@ def _positive_int(text: str) -> int:
     return value
 
 
+def _positive_float(text: str) -> float:
+    import argparse
+    import math
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f'expected a finite number > 0, got {text!r}')
+    return value
+
+
 # ---------------------------------------------------------------------------------------------
 # play
 # ---------------------------------------------------------------------------------------------
@@ -342,11 +354,11 @@ def register(sub) -> None:
                        '(points and frame_id of a PointCloud2, level and message of '
                        'diagnostics). Ctrl-C or --duration ends it with a summary.')
     p.add_argument('topics', nargs='+', metavar='TOPIC')
-    p.add_argument('--window', type=int, default=50, metavar='N',
+    p.add_argument('--window', type=_positive_int, default=50, metavar='N',
                    help='rate over the last N messages (default 50)')
-    p.add_argument('--period', type=float, default=1.0, metavar='S',
+    p.add_argument('--period', type=_positive_float, default=1.0, metavar='S',
                    help='print every S seconds (default 1)')
-    p.add_argument('--duration', type=float, default=None, metavar='S',
+    p.add_argument('--duration', type=_positive_float, default=None, metavar='S',
                    help='stop after S seconds')
     add_qos_options(p, 10, 'subscriptions', 'but hears nothing from a best-effort publisher')
     p.set_defaults(func=cmd_hz)

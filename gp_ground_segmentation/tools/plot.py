@@ -159,10 +159,14 @@ def plot_frame(msg, out_path, *, params=None, segment=None, labels=None, title='
         info['metrics'] = ground_metrics(result.ground_mask, labels, vegetation_is_ground)
     _draw_top(ax_top, xyz, result, labels, vegetation_is_ground, segment, m,
               ground_truth_from_labels)
+    # the surface panel's numbers too: a figure drawn before a change of z_std is stale
+    surface_points = result.ground_surface.points()
+    info['surface_z_std_mean'] = (float(np.mean(surface_points[:, 3]))
+                                  if len(surface_points) else None)
+    # no time in the title: one cold call says little, and a regenerated figure would differ
     sub = (f'{n_valid} valid points, ground share {n_ground / max(n_valid, 1):.2f}; '
            f'theta: sigma_f {theta.sigma_f:.3g} m, a {theta.gain:.3g}, '
-           f'sigma_n {theta.sigma_n:.3g} m'
-           f'; segment {result.timings_ms.get("total", float("nan")):.0f} ms')
+           f'sigma_n {theta.sigma_n:.3g} m')
     if 'metrics' in info:
         mt = info['metrics']
         sub += (f'\nground precision {mt["precision"]:.3f}, recall {mt["recall"]:.3f}, '

@@ -20,9 +20,10 @@
   same frames. The written parameters come from a final study on all frames.
 * Trials run ``engine.workers`` at a time on the same engine as ``batch`` (in-process or Dask).
 
-The output is a ROS 2 parameter file with the node's layout (``ground_segmentation:`` /
-``ros__parameters:``), only the keys that differ from the defaults, and a comment header saying
-what it was tuned on and the scores; the node (``--params-file``) and ``replay --params`` load it.
+The output is a ROS 2 parameter file with the layout of config/params.yaml (``'/**':`` /
+``ros__parameters:``: the node in any namespace), only the keys that differ from the defaults,
+and a comment header saying what it was tuned on and the scores; the node (``--params-file``)
+and ``replay --params`` load it.
 """
 
 from __future__ import annotations
@@ -39,7 +40,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from .cli import CliError
+from .cli import CliError, add_label_class_arguments, label_classes, no_ground_note
 
 OPTUNA_MISSING = ("tune needs Optuna, which is not installed: pip install "
                   "'gp_ground_segmentation[tune]' (or: pip install optuna)")
@@ -329,14 +330,6 @@ def params_yaml(report: TuneReport, dataset_text: str) -> str:
 # CLI
 # ---------------------------------------------------------------------------------------------
 
-def _class_list(text: str) -> tuple:
-    try:
-        return tuple(sorted({int(v) for v in text.split(',') if v.strip()}))
-    except ValueError:
-        raise CliError(f'class list {text!r}: expected comma-separated integers, e.g. '
-                       f'40,44,48') from None
-
-
 def labelled_frames(paths: Sequence[str], labels_dir: Optional[str], ground: tuple,
                     ignored: tuple, scene_rule: str) -> list:
     """LabelledFrame per path; the label file is ``<labels-dir or the frame's dir>/<stem>.label``
@@ -346,7 +339,7 @@ def labelled_frames(paths: Sequence[str], labels_dir: Optional[str], ground: tup
         rule = re.compile(scene_rule)
     except re.error as err:
         raise CliError(f'--scene-of {scene_rule!r}: not a regular expression ({err})') from None
-    frames, stems = [], {}
+    frames, stems, matched = [], {}, 0
     for p in paths:
         path = Path(p)
         if not path.is_file():
@@ -360,28 +353,29 @@ def labelled_frames(paths: Sequence[str], labels_dir: Optional[str], ground: tup
             raise CliError(f'{label}: label file not found (expected <labels-dir>/<frame '
                            f'name>.label)')
         match = rule.match(path.stem)
+        matched += bool(match)
         scene = match.group(1) if match and match.groups() else path.stem
         frames.append(LabelledFrame(str(path.resolve()), str(label.resolve()), scene, ground,
                                     ignored))
+    if frames and not matched and scene_rule != DEFAULT_SCENE_RULE:  # surely not meant
+        raise CliError(f'--scene-of {scene_rule!r} matches none of the frame names (e.g. '
+                       f'{next(iter(stems))!r}); group 1 of a match names the scene')
     return frames
 
 
 def add_parser(sub) -> None:
     """Register ``gp-ground-seg tune``."""
     from .engine import add_engine_arguments
-    from .evaluation import DATASET_CLASSES
     p = sub.add_parser('tune', help='search parameters on labelled scans, write params.yaml',
                        description='Optuna search of the segmenter parameters listed in the '
-                       'README ("Tuning") for the best pooled ground F1 on labelled scans; '
-                       'reports leave-one-scene-out cross-validated F1 of the tuned set vs the '
-                       'defaults and writes a node parameter file with the changed keys.')
+                       'README ("Many bags and tuning: batch and tune") for the best pooled '
+                       'ground F1 on labelled scans; reports leave-one-scene-out cross-validated '
+                       'F1 of the tuned set vs the defaults and writes a node parameter file '
+                       'with the changed keys.')
     p.add_argument('frames', nargs='+', metavar='FRAME', help='.bin or .pcd scans')
     p.add_argument('--labels-dir', metavar='D', help='directory of <frame name>.label files '
                    '(default: beside each frame)')
-    p.add_argument('--dataset', choices=sorted(DATASET_CLASSES), default='semantickitti',
-                   help='label ontology: its ground and ignored classes (default semantickitti)')
-    p.add_argument('--ground-classes', metavar='C,C,...', help='override the ground classes')
-    p.add_argument('--ignore-classes', metavar='C,C,...', help='override the ignored classes')
+    add_label_class_arguments(p)
     p.add_argument('--trials', type=int, default=40, metavar='N', help='trials per study '
                    '(one study per held-out scene plus the final one; default 40)')
     p.add_argument('--seed', type=int, default=0, help='TPE sampler seed (default 0)')
@@ -391,22 +385,28 @@ def add_parser(sub) -> None:
     add_engine_arguments(p)
     p.add_argument('--json', action='store_true', help='print the report as JSON')
     p.add_argument('--out', required=True, metavar='params.yaml', help='parameter file to write')
+    p.add_argument('--force', action='store_true', help='overwrite --out if it exists')
     p.set_defaults(func=cmd_tune)
 
 
 def cmd_tune(args) -> int:
     from .engine import open_engine
-    from .evaluation import DATASET_CLASSES
-    ground, ignored = DATASET_CLASSES[args.dataset]
-    if args.ground_classes:
-        ground = _class_list(args.ground_classes)
-    if args.ignore_classes:
-        ignored = _class_list(args.ignore_classes)
+    from .io import read_semantickitti_labels
+    ground, ignored = label_classes(args)
     out = Path(args.out)
     if out.is_dir():
         raise CliError(f'{out} is a directory; give a file name for the parameters')
-    frames = labelled_frames(args.frames, args.labels_dir, tuple(ground), tuple(ignored),
-                             args.scene_of)
+    if (out.exists() or out.is_symlink()) and not args.force:
+        raise CliError(f'{out} exists; pass --force to overwrite it')
+    frames = labelled_frames(args.frames, args.labels_dir, ground, ignored, args.scene_of)
+    notes = [no_ground_note(f.points, read_semantickitti_labels(f.labels), ground, ignored)
+             for f in frames]
+    if all(notes):  # nothing to tune for; one frame without ground is only a note
+        raise CliError(f'no frame has a labelled point in the ground classes '
+                       f'{",".join(map(str, ground))}: labels of another data set? '
+                       '(--dataset rellis3d, --ground-classes)')
+    for note in filter(None, notes):
+        print(f'gp-ground-seg tune: note: {note}', file=sys.stderr)
     _import_optuna()  # fail before starting a cluster
     with open_engine(args.jobs, args.scheduler) as engine:
         engine.check_shared([f.points for f in frames] + [f.labels for f in frames])

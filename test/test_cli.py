@@ -268,3 +268,14 @@ def test_params_directory_and_output_inside_the_input_bag_are_one_line(tmp_path,
     assert sorted(p.name for p in bag.iterdir()) == ['kitti00_sample.mcap', 'metadata.yaml']
     assert main(['eval', f'{bag}:0', '--params', str(tmp_path)]) == 2
     assert 'is a directory; give the parameter file' in capsys.readouterr().err
+
+
+@needs_data
+def test_plot_colours_errors_against_rellis_labels_with_their_classes(tmp_path, capsys):
+    pytest.importorskip('matplotlib')
+    scan = DATA / 'labeled' / 'rellis3d_examplebundle_000001.bin'
+    args = ['plot', str(scan), '--labels', str(scan.with_suffix('.label'))]
+    assert main(args + ['--out', str(tmp_path / 'a.png')]) == 0
+    assert 'no labelled point is in the ground classes' in capsys.readouterr().err
+    assert main(args + ['--dataset', 'rellis3d', '--out', str(tmp_path / 'b.png')]) == 0
+    assert 'note' not in capsys.readouterr().err and (tmp_path / 'b.png').stat().st_size > 0

@@ -74,13 +74,19 @@ def add_label_class_arguments(p) -> None:
 
 
 def label_classes(args) -> tuple:
-    """(ground classes, ignored classes) of add_label_class_arguments' options."""
-    from .evaluation import DATASET_CLASSES
+    """(ground classes, ignored classes) of add_label_class_arguments' options (and of
+    --vegetation-ground where the command has it)."""
+    from .evaluation import DATASET_CLASSES, SEMANTIC_KITTI
     ground, ignored = DATASET_CLASSES[args.dataset]
     if args.ground_classes:
         ground = _class_list(args.ground_classes)
     if args.ignore_classes:
         ignored = _class_list(args.ignore_classes)
+    if getattr(args, 'vegetation_ground', False):
+        if args.dataset != 'semantickitti':
+            raise CliError('--vegetation-ground adds SemanticKITTI class 70; with '
+                           f'--dataset {args.dataset} give --ground-classes instead')
+        ground = tuple(sorted(set(ground) | {SEMANTIC_KITTI.vegetation}))
     return tuple(ground), tuple(ignored)
 
 
@@ -156,7 +162,7 @@ def _print_eval_row(row: dict, ground: tuple, repeat: int) -> None:
 
 def cmd_eval(args) -> int:
     from .bag import load_segmenter_params, warm_up
-    from .evaluation import SEMANTIC_KITTI, labelled_ground_truth, truth_metrics
+    from .evaluation import labelled_ground_truth, truth_metrics
     from .io import read_semantickitti_labels
     from ..ros.pipeline import frame_timings, process_cloud
     from ..core.segmenter import GroundSegmenter
@@ -164,11 +170,6 @@ def cmd_eval(args) -> int:
     if args.repeat < 1:
         raise CliError('--repeat must be at least 1')
     ground, ignored = label_classes(args)
-    if args.vegetation_ground:
-        if args.dataset != 'semantickitti':
-            raise CliError('--vegetation-ground adds SemanticKITTI class 70; with '
-                           f'--dataset {args.dataset} give --ground-classes instead')
-        ground = tuple(sorted(set(ground) | {SEMANTIC_KITTI.vegetation}))
     params = load_segmenter_params(args.params)
     labels_files = args.labels or []
     segmenter = GroundSegmenter(params)
@@ -253,12 +254,16 @@ def cmd_plot(args) -> int:
     params = load_segmenter_params(args.params)
     msg, name = read_frame(args.frame, args.topic)
     labels = None
+    classes = label_classes(args)
     if args.labels:
         from .io import read_semantickitti_labels
         labels = read_semantickitti_labels(args.labels,
                                            expected_points=int(msg.height) * int(msg.width))
+        note = no_ground_note(args.labels, labels, *classes)
+        if note:
+            print(f'gp-ground-seg plot: note: {note}', file=sys.stderr)
     info = plot_frame(msg, out, params=params, segment=args.segment, labels=labels, title=name,
-                      vegetation_is_ground=args.vegetation_ground)
+                      label_classes=classes)
     print(f'wrote {out} (segment {info["segment"]}, {info["points"]} points)')
     return 0
 
@@ -351,6 +356,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help='angular segment for the side view (default: the one straight ahead, '
                    '+x)')
     p.add_argument('--labels', metavar='FILE.label', help='colour the top view by TP/FP/FN')
+    add_label_class_arguments(p)
     p.add_argument('--params', metavar='YAML', help='node parameter file (config/params.yaml)')
     p.add_argument('--topic', default=None, help='PointCloud2 topic for a bag FRAME')
     p.add_argument('--vegetation-ground', action='store_true',

@@ -6,8 +6,9 @@ ground / obstacle, the ground candidates (lowest point per radial bin), the crit
 that end line-segments, the fitted line-segments, and the ground surface z +/- 2 z_std
 (``result.ground_surface`` at the segment's bin edges).
 Middle panel (bird's-eye view, x vs y): every valid point coloured ground / obstacle, or, when
-SemanticKITTI labels are given, by error: true ground found (TP), ground missed (FN), obstacle
-called ground (FP), obstacle kept (TN); the selected segment is outlined.
+labels are given (SemanticKITTI classes by default; --dataset), by error: true ground found
+(TP), ground missed (FN), obstacle called ground (FP), obstacle kept (TN); the selected segment
+is outlined.
 Right panel (bird's-eye height map): the ground surface coloured by z, with contours of z_std
 (the std of the ground height, surface.z_std) over the supported prediction points.
 
@@ -123,14 +124,15 @@ def default_segment(num_segments: int) -> int:
 
 
 def plot_frame(msg, out_path, *, params=None, segment=None, labels=None, title='',
-               vegetation_is_ground=False, dpi=110) -> dict:
-    """Segment one PointCloud2 and save the two-panel figure to ``out_path`` (PNG, SVG, PDF).
+               label_classes=None, dpi=110) -> dict:
+    """Segment one PointCloud2 and save the three-panel figure to ``out_path`` (PNG, SVG, PDF).
 
-    ``labels``: SemanticKITTI classes per point (optional). Returns a dict with the segment
-    index, point count and, with labels, the metrics.
+    ``labels``: semantic classes per point (optional), scored with ``label_classes`` = (ground
+    classes, ignored classes), default SemanticKITTI's (evaluation.DATASET_CLASSES). Returns a
+    dict with the segment index, point count and, with labels, the metrics.
     """
     from ..ros.cloud import cloud_xyz, read_cloud
-    from .evaluation import ground_metrics, ground_truth_from_labels
+    from .evaluation import DATASET_CLASSES, labelled_ground_truth, truth_metrics
     from ..core.params import SegmenterParams
     from ..core.segmenter import GroundSegmenter
 
@@ -155,10 +157,12 @@ def plot_frame(msg, out_path, *, params=None, segment=None, labels=None, title='
         1, 3, figsize=(25, 7.2), gridspec_kw={'width_ratios': [1.45, 1, 1.15]})
     _draw_side(ax_side, view, segment, m)
     _draw_surface(ax_surface, result.ground_surface, fig)
+    ground_classes, ignored_classes = label_classes or DATASET_CLASSES['semantickitti']
+    truth = evaluated = None
     if labels is not None:
-        info['metrics'] = ground_metrics(result.ground_mask, labels, vegetation_is_ground)
-    _draw_top(ax_top, xyz, result, labels, vegetation_is_ground, segment, m,
-              ground_truth_from_labels)
+        truth, evaluated = labelled_ground_truth(labels, ground_classes, ignored_classes)
+        info['metrics'] = truth_metrics(result.ground_mask, truth, evaluated)
+    _draw_top(ax_top, xyz, result, truth, evaluated, ignored_classes, segment, m)
     # the surface panel's numbers too: a figure drawn before a change of z_std is stale
     surface_points = result.ground_surface.points()
     info['surface_z_std_mean'] = (float(np.mean(surface_points[:, 3]))
@@ -170,8 +174,8 @@ def plot_frame(msg, out_path, *, params=None, segment=None, labels=None, title='
     if 'metrics' in info:
         mt = info['metrics']
         sub += (f'\nground precision {mt["precision"]:.3f}, recall {mt["recall"]:.3f}, '
-                f'F1 {mt["f1"]:.3f} (vegetation = '
-                f'{"ground" if vegetation_is_ground else "non-ground"})')
+                f'F1 {mt["f1"]:.3f} (ground classes '
+                f'{",".join(map(str, ground_classes))})')
     fig.suptitle(f'{title}\n{sub}' if title else sub, fontsize=11)
     fig.tight_layout()
     out = Path(out_path)
@@ -236,23 +240,23 @@ def _draw_side(ax, v, segment, m):
     ax.legend(loc='upper left', fontsize=8, markerscale=1.5, framealpha=0.9)
 
 
-def _draw_top(ax, xyz, result, labels, vegetation_is_ground, segment, m, truth_fn):
+def _draw_top(ax, xyz, result, truth, evaluated, ignored_classes, segment, m):
     valid = result.valid_mask
     ground = result.ground_mask
     x, y = xyz[:, 0], xyz[:, 1]
-    if labels is None:
+    if truth is None:
         groups = [('ground', ground, COLOURS['ground']),  # obstacles drawn on top
                   ('obstacle', valid & ~ground, COLOURS['obstacle'])]
         ax.set_title('bird\'s-eye view: segmenter labels')
     else:
-        truth, evaluated = truth_fn(labels, vegetation_is_ground)
         ev = evaluated & valid
-        groups = [('not evaluated (class 0/1)', valid & ~evaluated, COLOURS['ignored']),
+        ignored = '/'.join(map(str, ignored_classes))
+        groups = [(f'not evaluated (class {ignored})', valid & ~evaluated, COLOURS['ignored']),
                   ('TN obstacle kept', ev & ~ground & ~truth, COLOURS['tn']),
                   ('TP ground found', ev & ground & truth, COLOURS['tp']),
                   ('FN ground missed', ev & ~ground & truth, COLOURS['fn']),
                   ('FP obstacle called ground', ev & ground & ~truth, COLOURS['fp'])]
-        ax.set_title('bird\'s-eye view: errors against SemanticKITTI labels')
+        ax.set_title('bird\'s-eye view: errors against the labels')
     for name, mask, colour in groups:
         ax.scatter(x[mask], y[mask], s=0.4 if 'TN' in name or 'not' in name else 0.8, c=colour,
                    lw=0, label=f'{name} ({np.count_nonzero(mask)})', rasterized=True)

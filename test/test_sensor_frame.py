@@ -12,7 +12,7 @@ from gp_ground_segmentation.core import segmenter as segmenter_module
 from gp_ground_segmentation.core.params import SegmenterParams
 from gp_ground_segmentation.core.segmenter import GroundSegmenter
 from gp_ground_segmentation.core.sensor_frame import (NOT_CENTRED, SensorPose, centring_note,
-                                                      to_levelled_frame)
+                                                      to_levelled_frame, units_note)
 from gp_ground_segmentation.tools.evaluation import ground_metrics
 from scenes.synthetic import make_scene, simulate_scan
 
@@ -149,6 +149,17 @@ def test_centring_note(scan):
     assert centring_note(np.c_[r * np.cos(a), r * np.sin(a), np.zeros_like(r)]) is None
     front = scan[(scan[:, 0] > 0) & (np.abs(scan[:, 1]) < scan[:, 0])]
     assert centring_note(front) is None
+
+
+def test_units_note_flags_a_cloud_in_millimetres(scan):
+    # the same scene in mm: the segmenter would work on a 10 km "street" and say nothing
+    assert units_note(scan) is None
+    note = units_note(scan * 1000.0)
+    assert note is not None and 'millimetres' in note and 'metres' in note
+    assert units_note(scan[:10] * 1000.0) is None  # too few points to judge
+    rng = np.random.default_rng(0)  # a long-range scan (everything 200-400 m away) is fine
+    r, a = rng.uniform(200, 400, 5000), rng.uniform(-np.pi, np.pi, 5000)
+    assert units_note(np.c_[r * np.cos(a), r * np.sin(a), np.zeros_like(r)]) is None
 
 
 @pytest.mark.skipif(not LABELED_BIN.exists(), reason=f'{DATA} not present')

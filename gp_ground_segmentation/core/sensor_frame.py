@@ -32,6 +32,7 @@ from typing import NamedTuple, Optional
 import numpy as np
 
 __all__ = ['SensorPose', 'to_levelled_frame', 'ground_height_in_cloud_frame', 'centring_note',
+           'units_note', 'MAX_PLAUSIBLE_MEDIAN_RANGE_M',
            'NEAR_RADIUS_M', 'MIN_NEAR_SHARE', 'MAX_ONE_SIDEDNESS', 'NOT_CENTRED']
 
 # A spinning LiDAR in its own frame has a large share of its returns close by (point density
@@ -47,6 +48,29 @@ MAX_ONE_SIDEDNESS = 0.5
 NOT_CENTRED = 'cloud does not look sensor-centred'  # how centring_note's text starts
 _MIN_POINTS_TO_JUDGE = 1000
 _SAMPLE_POINTS = 1024  # the share is estimated on an evenly strided sample (+- 0.02)
+
+
+# No LiDAR measures beyond ~500 m: a cloud whose median horizontal range is above this is not in
+# metres (millimetres, as some drivers and exporters write, put a 10 m street at 10,000)
+MAX_PLAUSIBLE_MEDIAN_RANGE_M = 1000.0
+
+
+def units_note(points: np.ndarray) -> Optional[str]:
+    """A one-line note when the cloud's ranges cannot be metres, else None (strided sample)."""
+    pts = np.asarray(points)
+    if pts.ndim != 2 or pts.shape[0] < _MIN_POINTS_TO_JUDGE:
+        return None
+    pts = pts[::max(1, pts.shape[0] // _SAMPLE_POINTS), :2].astype(np.float64)
+    r = np.hypot(pts[:, 0], pts[:, 1])
+    r = r[np.isfinite(r) & (r > 0)]
+    if r.size < _MIN_POINTS_TO_JUDGE // 20:
+        return None
+    median = float(np.median(r))
+    if median <= MAX_PLAUSIBLE_MEDIAN_RANGE_M:
+        return None
+    return (f'the median horizontal range of the points is {median:,.0f} m: are x, y, z in '
+            'millimetres? PointCloud2 coordinates are metres (REP 103); the segmenter assumes '
+            'them')
 
 
 class SensorPose(NamedTuple):

@@ -25,37 +25,40 @@ def _run(args, timeout=60):
     return proc.returncode, out
 
 
-@pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM])
-def test_two_signals_to_the_process_group_exit_0_quietly(sig):
-    # A terminal's Ctrl-C goes to the whole process group, and ros2 launch forwards another.
-    proc = _start(['--ros-args', '-r', 'points:=/gp_test_points'], start_new_session=True)
+def _signal_once_up(args, send):
+    """(exit code, output) of the node started with ``args`` in its own process group, after
+    ``send(proc)`` once it logged 'listening on'."""
+    proc = _start(args, start_new_session=True)
     try:
         wait_listening(proc)
-        os.killpg(proc.pid, sig)
-        os.killpg(proc.pid, sig)
+        send(proc)
         out, _ = proc.communicate(timeout=30)
     finally:
         if proc.poll() is None:
             proc.kill()
             proc.communicate()
-    assert proc.returncode == 0, out
+    return proc.returncode, out
+
+
+@pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM])
+def test_two_signals_to_the_process_group_exit_0_quietly(sig):
+    # A terminal's Ctrl-C goes to the whole process group, and ros2 launch forwards another.
+    def twice(proc):
+        os.killpg(proc.pid, sig)
+        os.killpg(proc.pid, sig)
+    code, out = _signal_once_up(['--ros-args', '-r', 'points:=/gp_test_points'], twice)
+    assert code == 0, out
     assert 'Traceback' not in out and 'KeyboardInterrupt' not in out, out
 
 
 def test_signals_during_shutdown_are_ignored():
     # Signals keep coming while the node is being destroyed (worker joined): still exit 0.
-    proc = _start(['--ros-args', '-r', 'points:=/gp_test_points'], start_new_session=True)
-    try:
-        wait_listening(proc)
+    def five(proc):
         for _ in range(5):
             os.killpg(proc.pid, signal.SIGINT)
             time.sleep(0.02)
-        out, _ = proc.communicate(timeout=30)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.communicate()
-    assert proc.returncode == 0 and 'Traceback' not in out, out
+    code, out = _signal_once_up(['--ros-args', '-r', 'points:=/gp_test_points'], five)
+    assert code == 0 and 'Traceback' not in out, out
 
 
 def test_help_prints_usage_and_does_not_start():
@@ -135,18 +138,13 @@ def test_qos_override_of_a_topic_the_node_does_not_have_is_warned_about(tmp_path
         '/points': {'subscription': {'reliability': 'reliable'}},
         '/ground': {'publisher': {'depth': 3}}}
     path.write_text(yaml.safe_dump(doc))
-    proc = _start(['--ros-args', '-r', 'points:=/gp_test_remapped', '--params-file', str(path)],
-                  start_new_session=True)
-    try:
-        wait_listening(proc)
-        time.sleep(0.5)
+
+    def interrupt(proc):
+        time.sleep(0.5)  # the check runs right after the 'listening' line
         os.killpg(proc.pid, signal.SIGINT)
-        out, _ = proc.communicate(timeout=30)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.communicate()
-    assert proc.returncode == 0, out
+    code, out = _signal_once_up(['--ros-args', '-r', 'points:=/gp_test_remapped',
+                                 '--params-file', str(path)], interrupt)
+    assert code == 0, out
     warnings = [ln for ln in out.splitlines() if 'qos_overrides' in ln]
     assert len(warnings) == 1 and 'WARN' in warnings[0], out
     assert 'for /points match none' in warnings[0] and '/gp_test_remapped' in warnings[0], out

@@ -217,7 +217,7 @@ def test_make_sample_rebuilds_the_shipped_bag(tmp_path, capsys):
     (['hz', '/x', '--window', '0'], '--window: expected an integer >= 1'),
     (['hz', 'bad topic', '--duration', '1'], "'/bad topic' is not a valid ROS 2 topic name"),
     (['play', str(REPO / 'data' / 'kitti00_sample'), '--topic', '/a//b',
-      '--wait-for-subscriber', '0'], "'/a//b' is not a valid ROS 2 topic name"),
+      '--wait-for-subscriber', '0'], 'topic /a//b not in bag'),
     (['replay', str(REPO / 'data' / 'kitti00_sample'), 'OUT', '--output-prefix', '1st/x'],
      "--output-prefix '/1st/x' is not a valid ROS 2 topic name"),
 ])
@@ -279,3 +279,14 @@ def test_plot_colours_errors_against_rellis_labels_with_their_classes(tmp_path, 
     assert 'no labelled point is in the ground classes' in capsys.readouterr().err
     assert main(args + ['--dataset', 'rellis3d', '--out', str(tmp_path / 'b.png')]) == 0
     assert 'note' not in capsys.readouterr().err and (tmp_path / 'b.png').stat().st_size > 0
+
+
+def test_bag_topics_follow_ros1_rules_where_only_matched_and_ros2_rules_where_used():
+    from gp_ground_segmentation.tools.bag import BagError, normalize_topic
+    # reading a (ROS 1) bag only matches names: '/lidar/0/points' is a valid ROS 1 topic
+    assert normalize_topic('/lidar/0/points') == '/lidar/0/points'
+    assert normalize_topic('ns/points/') == '/ns/points'
+    # what rclpy subscribes or publishes to must be a ROS 2 name
+    with pytest.raises(BagError, match='not a valid ROS 2 topic name'):
+        normalize_topic('/lidar/0/points', strict=True)
+    assert normalize_topic('ns/points/', strict=True) == '/ns/points'

@@ -77,10 +77,11 @@ def _scan(n=4000, seed=0):
 
 
 @pytest.mark.parametrize('write, words', [
-    (lambda pts, p: pts.astype('<f8').tofile(p), 'beyond 10000 m'),
-    (lambda pts, p: pts[:, :3].copy().tofile(p), 'negative remission'),
-    (lambda pts, p: np.arange(len(pts), dtype='<u4').tofile(p), 'denormal'),
-], ids=['float64', 'xyz_only', 'labels'])
+    (lambda pts, p: pts.astype('<f8').tofile(p), r'x, y, z of [1-9]\d* % .*float64 values'),
+    (lambda pts, p: pts[:, :3].copy().tofile(p), r'4th value of [1-9]\d* % .*like a coordinate'),
+    (lambda pts, p: np.arange(len(pts), dtype='<u4').tofile(p), r'x, y, z of 100 % .*\.label'),
+    (lambda pts, p: (pts * [1000, 1000, 1000, 1]).astype('<f4').tofile(p), 'millimetres'),
+], ids=['float64', 'xyz_only', 'labels', 'millimetres'])
 def test_kitti_bin_in_another_layout_is_refused(tmp_path, write, words):
     # the sizes still split into 16-byte records: only the values give the layout away
     points = _scan(4000)
@@ -96,6 +97,21 @@ def test_kitti_bin_in_another_layout_is_refused(tmp_path, write, words):
     bad_returns[:20, 0] = 1e9  # 0.5 % of absurd returns are tolerated
     bad_returns.tofile(good)
     assert read_kitti_bin(good).shape == points.shape
+
+
+@pytest.mark.parametrize('fourth', ['time_offset', 'intensity_16bit', 'signed_gain', 'zero'])
+def test_kitti_bin_takes_any_4th_value_a_sensor_writes(tmp_path, fourth):
+    # the segmenter never reads it: time offsets around the scan's middle (+-50 ms), 16-bit
+    # intensities, a signed normalised value, nothing
+    points = _scan(4000, seed=1)
+    rng = np.random.default_rng(2)
+    points[:, 3] = {'time_offset': rng.uniform(-0.05, 0.05, len(points)),
+                    'intensity_16bit': rng.uniform(0, 65535, len(points)),
+                    'signed_gain': rng.uniform(-1, 1, len(points)),
+                    'zero': np.zeros(len(points))}[fourth]
+    path = tmp_path / 'scan.bin'
+    points.tofile(path)
+    assert np.array_equal(read_kitti_bin(path), points)
 
 
 def test_kitti_bin_truncated(tmp_path):

@@ -30,14 +30,14 @@ def _signal_once_up(args, send):
     ``send(proc)`` once it logged 'listening on'."""
     proc = _start(args, start_new_session=True)
     try:
-        wait_listening(proc)
+        first = ''.join(wait_listening(proc))
         send(proc)
         out, _ = proc.communicate(timeout=30)
     finally:
         if proc.poll() is None:
             proc.kill()
             proc.communicate()
-    return proc.returncode, out
+    return proc.returncode, first + out
 
 
 @pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM])
@@ -126,6 +126,7 @@ def test_params_file_without_a_section_for_the_node_is_refused(tmp_path):
     fatal = [ln for ln in out.splitlines() if 'FATAL' in ln]
     assert len(fatal) == 1 and "'/seg/ground_segmentation'" in fatal[0] \
         and str(path) in fatal[0], out
+    assert 'listening on' not in out  # refused before it says it is up
 
 
 def test_qos_override_of_a_topic_the_node_does_not_have_is_warned_about(tmp_path):
@@ -139,8 +140,7 @@ def test_qos_override_of_a_topic_the_node_does_not_have_is_warned_about(tmp_path
         '/ground': {'publisher': {'depth': 3}}}
     path.write_text(yaml.safe_dump(doc))
 
-    def interrupt(proc):
-        time.sleep(0.5)  # the check runs right after the 'listening' line
+    def interrupt(proc):  # the check ran before the 'listening' line
         os.killpg(proc.pid, signal.SIGINT)
     code, out = _signal_once_up(['--ros-args', '-r', 'points:=/gp_test_remapped',
                                  '--params-file', str(path)], interrupt)

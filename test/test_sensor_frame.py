@@ -160,6 +160,10 @@ def test_units_note_flags_a_cloud_in_millimetres(scan):
     rng = np.random.default_rng(0)  # a long-range scan (everything 200-400 m away) is fine
     r, a = rng.uniform(200, 400, 5000), rng.uniform(-np.pi, np.pi, 5000)
     assert units_note(np.c_[r * np.cos(a), r * np.sin(a), np.zeros_like(r)]) is None
+    # a metric cloud in a map frame far from the origin, with the sensor pose set: no note
+    far = scan + [1500.0, -800.0, 0.0]
+    assert units_note(far) is not None
+    assert units_note(far, SensorPose(x=1500.0, y=-800.0)) is None
 
 
 @pytest.mark.skipif(not LABELED_BIN.exists(), reason=f'{DATA} not present')

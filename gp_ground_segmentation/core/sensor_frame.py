@@ -55,13 +55,15 @@ _SAMPLE_POINTS = 1024  # the share is estimated on an evenly strided sample (+- 
 MAX_PLAUSIBLE_MEDIAN_RANGE_M = 1000.0
 
 
-def units_note(points: np.ndarray) -> Optional[str]:
-    """A one-line note when the cloud's ranges cannot be metres, else None (strided sample)."""
+def units_note(points: np.ndarray, pose: Optional['SensorPose'] = None) -> Optional[str]:
+    """A one-line note when the cloud's ranges from the sensor position of ``pose`` (default
+    the origin) cannot be metres, else None (strided sample)."""
     pts = np.asarray(points)
     if pts.ndim != 2 or pts.shape[0] < _MIN_POINTS_TO_JUDGE:
         return None
     pts = pts[::max(1, pts.shape[0] // _SAMPLE_POINTS), :2].astype(np.float64)
-    r = np.hypot(pts[:, 0], pts[:, 1])
+    pose = pose or SensorPose()
+    r = np.hypot(pts[:, 0] - pose.x, pts[:, 1] - pose.y)
     r = r[np.isfinite(r) & (r > 0)]
     if r.size < _MIN_POINTS_TO_JUDGE // 20:
         return None

@@ -154,8 +154,8 @@ def _node_sections(doc: dict, path: tuple = ()):
             params = value['ros__parameters']
             if params is None:  # rcl: "Cannot have a value before ros__parameters"
                 raise ParameterConfigError(
-                    f"'{key}/ros__parameters' is empty, which the node (rcl) refuses; write "
-                    "'ros__parameters: {}' or put parameters under it")
+                    f"'{'/'.join(path + (str(key),))}/ros__parameters' is empty, which the node "
+                    "(rcl) refuses; write 'ros__parameters: {}' or put parameters under it")
             if not isinstance(params, dict):
                 raise ParameterConfigError(
                     f"'{key}/ros__parameters' must be a mapping of parameter names to values")

@@ -140,9 +140,10 @@ def _one_line(text: str, limit: int = 300) -> str:
 class GroundSegmentationNode(Node):
     """Ground/obstacle split of LiDAR clouds with a Gaussian-process ground model."""
 
-    def __init__(self, segmenter_factory=GroundSegmenter, **node_kwargs):
+    def __init__(self, segmenter_factory=GroundSegmenter, announce: bool = True, **node_kwargs):
         """``segmenter_factory(params) -> segmenter`` (default GroundSegmenter); ``node_kwargs``
-        go to rclpy Node (context, cli_args, parameter_overrides, namespace, ...)."""
+        go to rclpy Node (context, cli_args, parameter_overrides, namespace, ...). ``announce``:
+        log the 'listening on' line now (main() does it itself once its checks passed)."""
         super().__init__(NODE_NAME, **node_kwargs)
         self._segmenter_factory = segmenter_factory
         self._worker = None
@@ -160,6 +161,8 @@ class GroundSegmentationNode(Node):
             self._stop_worker()
             super().destroy_node()
             raise
+        if announce:
+            self.announce()
 
     # --- construction ----------------------------------------------------------------------
     def _check_overrides(self) -> None:
@@ -216,11 +219,13 @@ class GroundSegmentationNode(Node):
         self._worker = threading.Thread(target=self._worker_loop, name='ground_seg_worker',
                                         daemon=True)
         self._worker.start()
+
+    def announce(self) -> None:
+        """Log the one 'listening on' line: topics, slot size and budget."""
         self.get_logger().info(
             f"listening on '{self._sub.topic_name}', publishing '{self._pub_ground.topic_name}',"
             f" '{self._pub_obstacles.topic_name}' and '{self._pub_surface.topic_name}' (slot "
-            f'{queue_size}, budget '
-            f'{self._budget_ms:g} ms)')
+            f'{self._slot.maxlen}, budget {self._budget_ms:g} ms)')
 
     # --- public state (read-only views, for tests and tools) --------------------------------
     @property
@@ -562,9 +567,10 @@ def main(args=None):
         # The executor exists before the node announces itself, so a Ctrl-C right after the
         # 'listening' line never lands inside executor construction (an rclpy 7.1 __del__ race).
         executor = SingleThreadedExecutor()
-        node = GroundSegmentationNode()
+        node = GroundSegmentationNode(announce=False)
         for path in params_files:
             _check_params_file_sections(path, node)
+        node.announce()  # after the checks: a refused file gives FATAL, not 'listening' first
         executor.add_node(node)
         executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):

@@ -158,7 +158,8 @@ def input_warnings(msg, result, xyz=None, params=None) -> list:
     """
     notes = []
     if xyz is not None:
-        for note in (units_note(xyz), centring_note(xyz, getattr(params, 'sensor_pose', None))):
+        pose = getattr(params, 'sensor_pose', None)
+        for note in (units_note(xyz, pose), centring_note(xyz, pose)):
             if note:
                 notes.append(note)
     n = int(result.valid_mask.size)

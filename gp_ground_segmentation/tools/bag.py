@@ -86,16 +86,19 @@ def _about(path, err: BaseException) -> str:
 _TOPIC_NAME = re.compile(r'(/[A-Za-z_][A-Za-z0-9_]*)+')
 
 
-def normalize_topic(topic: Optional[str], what: str = 'topic') -> Optional[str]:
-    """Bag topics are absolute: 'velodyne_points' means '/velodyne_points'. BagError (one
-    line) for a name that is not a valid ROS 2 topic name (``what`` names the option)."""
+def normalize_topic(topic: Optional[str], what: str = 'topic',
+                    strict: bool = False) -> Optional[str]:
+    """Bag topics are absolute: 'velodyne_points' means '/velodyne_points' (a trailing '/' is
+    dropped). ``strict``: BagError (one line) for a name that is not a valid ROS 2 topic name,
+    for names that rclpy will use (``what`` names the option); reading a bag only matches the
+    name against its topics, and ROS 1 bags may hold names such as '/lidar/0/points'."""
     if topic is None:
         return None
-    topic = topic.strip()
-    if not topic or topic == '/':
+    topic = topic.strip().rstrip('/')
+    if not topic:
         raise BagError(f'empty {what} name')
     topic = topic if topic.startswith('/') else '/' + topic
-    if not _TOPIC_NAME.fullmatch(topic):
+    if strict and not _TOPIC_NAME.fullmatch(topic):
         raise BagError(f'{what} {topic!r} is not a valid ROS 2 topic name (tokens of letters, '
                        "digits and '_' separated by single '/', none starting with a digit)")
     return topic
@@ -546,7 +549,7 @@ def replay(inputs: Sequence, out_bag, *, topic: Optional[str] = None,
     summary = ReplaySummary(output=str(out))
     t_start = time.perf_counter()
     if output_prefix is not None and output_prefix.strip('/'):  # '' or '/': the root
-        output_prefix = normalize_topic(output_prefix.rstrip('/'), '--output-prefix')
+        output_prefix = normalize_topic(output_prefix, '--output-prefix', strict=True)
     elif output_prefix is not None:
         output_prefix = ''
     with FrameSource(inputs, topic, max_frames, frame_id) as source:

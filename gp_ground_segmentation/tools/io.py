@@ -47,34 +47,42 @@ def read_kitti_bin(path):
     return points
 
 
-# A KITTI .bin holds float32 x, y, z in metres and a remission >= 0. Another layout read as one
-# (float64 values, x, y, z without the 4th value, a .label file) gives coordinates beyond any
-# LiDAR's range or denormal, or negative "remissions", in a large share of the points; a real
-# scan has none (a few bad returns are tolerated).
+# A KITTI .bin holds float32 x, y, z in metres and a 4th value per point (remission 0..1 in
+# KITTI; intensity, reflectivity or a time offset elsewhere: the segmenter does not read it).
+# Another layout read as one gives values no scan has: float64 values or a .label file read as
+# float32 put coordinates beyond any LiDAR's range or into denormals; x, y, z without a 4th
+# value shift every record, so the "4th value" is a coordinate (often negative, metres large,
+# where an intensity or a time offset is >= 0 or within +-1). A few bad returns are tolerated.
 _MAX_PLAUSIBLE_M = 1e4
 _MIN_PLAUSIBLE_M = 1e-20  # below this a nonzero coordinate is a bit pattern, not a distance
 _MAX_IMPLAUSIBLE_SHARE = 0.01
-_MAX_NEGATIVE_REMISSION_SHARE = 0.05
+_MAX_NEGATIVE_FOURTH_SHARE = 0.05
+_COORDINATE_SIZED_FOURTH = 2.0  # 95th percentile of |4th value| above this: metres, not a gain
 
 
 def _check_kitti_values(path, points: np.ndarray) -> None:
-    """PointFileError when ``points`` (N, 4) do not look like KITTI x, y, z, remission."""
-    xyz = points[:, :3]
-    finite = np.isfinite(xyz).all(axis=1)
-    xyz = xyz[finite]
+    """PointFileError when ``points`` (N, 4) cannot be float32 x, y, z and a 4th value."""
+    finite = np.isfinite(points[:, :3]).all(axis=1)
+    xyz = points[finite, :3]
     if xyz.shape[0] == 0:
         return
     magnitude = np.abs(xyz)
     odd = (magnitude > _MAX_PLAUSIBLE_M) | ((magnitude > 0) & (magnitude < _MIN_PLAUSIBLE_M))
     odd_share = float(np.mean(odd.any(axis=1)))
-    remission = points[finite, 3]
-    negative_share = float(np.mean(remission < 0))
-    if odd_share > _MAX_IMPLAUSIBLE_SHARE or negative_share > _MAX_NEGATIVE_REMISSION_SHARE:
-        raise _err(path, f'does not look like float32 x, y, z, remission: {100 * odd_share:.0f} '
-                         f'% of the points lie beyond {_MAX_PLAUSIBLE_M:g} m or have denormal '
-                         f'coordinates and {100 * negative_share:.0f} % have a negative '
-                         'remission; float64 files or files of 3 values per point must be '
-                         'converted to 4 float32 values per point')
+    if odd_share > _MAX_IMPLAUSIBLE_SHARE:
+        raise _err(path, f'not 4 float32 values per point (x, y, z in metres, then e.g. '
+                         f'remission): x, y, z of {100 * odd_share:.0f} % of the points lie '
+                         f'beyond {_MAX_PLAUSIBLE_M:g} m or are denormal; float64 values, a '
+                         '.label file or millimetres?')
+    fourth = points[finite, 3]
+    fourth = fourth[np.isfinite(fourth)]
+    negative_share = float(np.mean(fourth < 0)) if fourth.size else 0.0
+    if (negative_share > _MAX_NEGATIVE_FOURTH_SHARE
+            and float(np.percentile(np.abs(fourth), 95)) > _COORDINATE_SIZED_FOURTH):
+        raise _err(path, f'not 4 float32 values per point: the 4th value of '
+                         f'{100 * negative_share:.0f} % of the points is negative and metres '
+                         'large, like a coordinate; x, y, z without a 4th value? (convert to 4 '
+                         'float32 values per point)')
 
 
 def read_semantickitti_labels(path, expected_points=None):

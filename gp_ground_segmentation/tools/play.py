@@ -145,7 +145,7 @@ class _Player:
 
 
 def cmd_play(args) -> int:
-    from .bag import SYNTHETIC_PERIOD_NS, FrameSource
+    from .bag import SYNTHETIC_PERIOD_NS, FrameSource, normalize_topic
     from .cli import CliError
 
     if not args.rate > 0:
@@ -155,6 +155,7 @@ def cmd_play(args) -> int:
     source = FrameSource(args.inputs, args.topic, args.max_frames, args.frame_id)
     with source:
         pass  # open once up front: bad input is reported before the ROS graph starts
+    normalize_topic(source.topic, strict=True)  # it publishes on it: rclpy's rules apply
     prog = 'gp-ground-seg play'
     if source.note:
         print(f'{prog}: note: {source.note}', file=sys.stderr)
@@ -260,7 +261,7 @@ def cmd_hz(args) -> int:
     from .cli import CliError
     from .bag import normalize_topic
 
-    topics = [normalize_topic(t) for t in args.topics]
+    topics = [normalize_topic(t, strict=True) for t in args.topics]
     quiet = QuietShutdown()
     quiet.install()
     context = _ros_context()

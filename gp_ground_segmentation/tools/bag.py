@@ -184,7 +184,11 @@ class FrameSource:
         if self.kind == 'files':
             self.count = len(self.paths)
         else:
-            self._open_bag()
+            try:
+                self._open_bag()
+            except BaseException:  # e.g. the topic is not in the bag: __exit__ will not run
+                self.close()
+                raise
         if self.max_frames is not None:
             self.count = min(self.count, self.max_frames)
         return self

@@ -381,10 +381,10 @@ class ReplaySummary:
             lines.append(f'  theta range   {rng}')
         if self.stage_ms:
             lines.append(f'  {"stage":<14}{"p50 ms":>9}{"p95 ms":>9}{"max ms":>9}'
-                         '   (segment = core total; total = decode+segment+encode; '
-                         'frame = total+write)')
-            order = ('decode', 'grid', 'lines', 'gp_fit', 'predict', 'label', 'segment',
-                     'encode', 'total', 'write', 'frame')
+                         '   (segment = core total; surface = part of encode; total = '
+                         'decode+segment+encode; frame = total+write)')
+            order = ('decode', 'grid', 'lines', 'gp_fit', 'predict', 'label', 'structure',
+                     'segment', 'encode', 'surface', 'total', 'write', 'frame')
             names = sorted(self.stage_ms, key=lambda k: (order.index(k) if k in order
                                                          else len(order), k))
             for name in names:

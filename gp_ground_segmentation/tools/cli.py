@@ -98,12 +98,11 @@ def _class_list(text: str) -> tuple:
                        f'40,44,48') from None
 
 
-def no_ground_note(name: str, labels: np.ndarray, ground: tuple, ignored: tuple):
-    """A one-line note when no evaluated label of a frame is a ground class (labels of another
-    data set's ontology score 0 without it), else None."""
-    from .evaluation import labelled_ground_truth
-    truth, evaluated = labelled_ground_truth(labels, ground, ignored)
-    if np.any(truth & evaluated):
+def no_ground_note(name: str, ground_points: int, ground: tuple):
+    """A one-line note when none of a frame's evaluated labels is a ground class
+    (``ground_points``: how many are, e.g. TP + FN of its metrics; labels of another data set's
+    ontology score 0 without it), else None."""
+    if ground_points:
         return None
     return (f'{name}: no labelled point is in the ground classes {",".join(map(str, ground))}; '
             'labels of another data set? (--dataset rellis3d, --ground-classes)')
@@ -200,12 +199,12 @@ def cmd_eval(args) -> int:
                                f'--labels file per frame')
             labels = read_semantickitti_labels(labels_files[k], expected_points=row['points'])
             row['labels'] = str(labels_files[k])
-            note = no_ground_note(name, labels, ground, ignored)
-            if note:
-                print(f'gp-ground-seg eval: note: {note}', file=sys.stderr)
             truth, evaluated = labelled_ground_truth(labels, ground, ignored)
             row['metrics'] = {key: _nan_to_none(v) for key, v in
                               truth_metrics(res.ground_mask, truth, evaluated).items()}
+            note = no_ground_note(name, row['metrics']['tp'] + row['metrics']['fn'], ground)
+            if note:
+                print(f'gp-ground-seg eval: note: {note}', file=sys.stderr)
         frames.append(row)
         if not args.json:  # as it comes: a bad frame later does not lose this one
             _print_eval_row(row, ground, args.repeat)
@@ -259,11 +258,13 @@ def cmd_plot(args) -> int:
         from .io import read_semantickitti_labels
         labels = read_semantickitti_labels(args.labels,
                                            expected_points=int(msg.height) * int(msg.width))
-        note = no_ground_note(args.labels, labels, *classes)
-        if note:
-            print(f'gp-ground-seg plot: note: {note}', file=sys.stderr)
     info = plot_frame(msg, out, params=params, segment=args.segment, labels=labels, title=name,
                       label_classes=classes)
+    if 'metrics' in info:
+        note = no_ground_note(args.labels, info['metrics']['tp'] + info['metrics']['fn'],
+                              classes[0])
+        if note:
+            print(f'gp-ground-seg plot: note: {note}', file=sys.stderr)
     print(f'wrote {out} (segment {info["segment"]}, {info["points"]} points)')
     return 0
 

@@ -391,6 +391,7 @@ def add_parser(sub) -> None:
 
 def cmd_tune(args) -> int:
     from .engine import open_engine
+    from .evaluation import labelled_ground_truth
     from .io import read_semantickitti_labels
     ground, ignored = label_classes(args)
     out = Path(args.out)
@@ -399,8 +400,11 @@ def cmd_tune(args) -> int:
     if (out.exists() or out.is_symlink()) and not args.force:
         raise CliError(f'{out} exists; pass --force to overwrite it')
     frames = labelled_frames(args.frames, args.labels_dir, ground, ignored, args.scene_of)
-    notes = [no_ground_note(f.points, read_semantickitti_labels(f.labels), ground, ignored)
-             for f in frames]
+    notes = []
+    for f in frames:
+        truth, evaluated = labelled_ground_truth(read_semantickitti_labels(f.labels), ground,
+                                                 ignored)
+        notes.append(no_ground_note(f.points, int(np.count_nonzero(truth & evaluated)), ground))
     if all(notes):  # nothing to tune for; one frame without ground is only a note
         raise CliError(f'no frame has a labelled point in the ground classes '
                        f'{",".join(map(str, ground))}: labels of another data set? '

@@ -12,7 +12,7 @@ from gp_ground_segmentation.core import segmenter as segmenter_module
 from gp_ground_segmentation.core.params import SegmenterParams
 from gp_ground_segmentation.core.segmenter import GroundSegmenter
 from gp_ground_segmentation.core.sensor_frame import (NOT_CENTRED, SensorPose, centring_note,
-                                                      to_levelled_frame, units_note)
+                                                      cloud_notes, to_levelled_frame, units_note)
 from gp_ground_segmentation.tools.evaluation import ground_metrics
 from scenes.synthetic import make_scene, simulate_scan
 
@@ -164,6 +164,10 @@ def test_units_note_flags_a_cloud_in_millimetres(scan):
     far = scan + [1500.0, -800.0, 0.0]
     assert units_note(far) is not None
     assert units_note(far, SensorPose(x=1500.0, y=-800.0)) is None
+    # the node's input check: both from one sample, the same notes
+    assert cloud_notes(scan) == []
+    assert cloud_notes(far) == [units_note(far), centring_note(far)]
+    assert cloud_notes(far, SensorPose(x=1500.0, y=-800.0)) == []
 
 
 @pytest.mark.skipif(not LABELED_BIN.exists(), reason=f'{DATA} not present')

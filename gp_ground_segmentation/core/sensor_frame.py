@@ -32,7 +32,7 @@ from typing import NamedTuple, Optional
 import numpy as np
 
 __all__ = ['SensorPose', 'to_levelled_frame', 'ground_height_in_cloud_frame', 'centring_note',
-           'units_note', 'MAX_PLAUSIBLE_MEDIAN_RANGE_M',
+           'units_note', 'cloud_notes', 'MAX_PLAUSIBLE_MEDIAN_RANGE_M',
            'NEAR_RADIUS_M', 'MIN_NEAR_SHARE', 'MAX_ONE_SIDEDNESS', 'NOT_CENTRED']
 
 # A spinning LiDAR in its own frame has a large share of its returns close by (point density
@@ -53,26 +53,6 @@ _SAMPLE_POINTS = 1024  # the share is estimated on an evenly strided sample (+- 
 # No LiDAR measures beyond ~500 m: a cloud whose median horizontal range is above this is not in
 # metres (millimetres, as some drivers and exporters write, put a 10 m street at 10,000)
 MAX_PLAUSIBLE_MEDIAN_RANGE_M = 1000.0
-
-
-def units_note(points: np.ndarray, pose: Optional['SensorPose'] = None) -> Optional[str]:
-    """A one-line note when the cloud's ranges from the sensor position of ``pose`` (default
-    the origin) cannot be metres, else None (strided sample)."""
-    pts = np.asarray(points)
-    if pts.ndim != 2 or pts.shape[0] < _MIN_POINTS_TO_JUDGE:
-        return None
-    pts = pts[::max(1, pts.shape[0] // _SAMPLE_POINTS), :2].astype(np.float64)
-    pose = pose or SensorPose()
-    r = np.hypot(pts[:, 0] - pose.x, pts[:, 1] - pose.y)
-    r = r[np.isfinite(r) & (r > 0)]
-    if r.size < _MIN_POINTS_TO_JUDGE // 20:
-        return None
-    median = float(np.median(r))
-    if median <= MAX_PLAUSIBLE_MEDIAN_RANGE_M:
-        return None
-    return (f'the median horizontal range of the points is {median:,.0f} m: are x, y, z in '
-            'millimetres? PointCloud2 coordinates are metres (REP 103); the segmenter assumes '
-            'them')
 
 
 class SensorPose(NamedTuple):
@@ -127,12 +107,36 @@ def ground_height_in_cloud_frame(levelled: np.ndarray, ground_z: np.ndarray,
     return levelled[:, 0] * col[0] + levelled[:, 1] * col[1] + ground_z * col[2] + pose.z
 
 
+def cloud_notes(points: np.ndarray, pose: Optional[SensorPose] = None) -> list:
+    """The one-line notes of :func:`units_note` and :func:`centring_note` that apply, from one
+    evenly strided sample of ``points`` (what the node's input checks call per frame)."""
+    sample = _sample_offsets(points, pose)
+    if sample is None:
+        return []
+    return [note for note in (_units_problem(*sample), _centring_problem(*sample, pose))
+            if note]
+
+
+def units_note(points: np.ndarray, pose: Optional[SensorPose] = None) -> Optional[str]:
+    """A one-line note when the cloud's ranges from the sensor position of ``pose`` (default
+    the origin) cannot be metres, else None. Cheap: an evenly strided sample."""
+    sample = _sample_offsets(points, pose)
+    return None if sample is None else _units_problem(*sample)
+
+
 def centring_note(points: np.ndarray, pose: Optional[SensorPose] = None) -> Optional[str]:
     """A one-line note when the cloud does not look centred on the sensor, else None.
 
     ``points``: (N, >=3) in the cloud's frame; ``pose``: the configured sensor pose (the
     check is made around the sensor position it gives). Cheap: an evenly strided sample.
     """
+    sample = _sample_offsets(points, pose)
+    return None if sample is None else _centring_problem(*sample, pose)
+
+
+def _sample_offsets(points, pose):
+    """(dx, dy, r) from the sensor position of ``pose`` of an evenly strided sample of the
+    finite points that are not the (0, 0, 0) no-return value; None when too few to judge."""
     pts = np.asarray(points)
     if pts.ndim != 2 or pts.shape[0] < _MIN_POINTS_TO_JUDGE:
         return None
@@ -144,7 +148,25 @@ def centring_note(points: np.ndarray, pose: Optional[SensorPose] = None) -> Opti
     ok = np.isfinite(r) & ((pts[:, 0] != 0) | (pts[:, 1] != 0) | (pts[:, 2] != 0))
     if np.count_nonzero(ok) < _MIN_POINTS_TO_JUDGE // 20:
         return None
-    r, dx, dy = r[ok], dx[ok], dy[ok]
+    return dx[ok], dy[ok], r[ok]
+
+
+def _units_problem(dx, dy, r) -> Optional[str]:
+    """units_note of a sample (_sample_offsets)."""
+    r = r[r > 0]
+    if r.size < _MIN_POINTS_TO_JUDGE // 20:
+        return None
+    median = float(np.median(r))
+    if median <= MAX_PLAUSIBLE_MEDIAN_RANGE_M:
+        return None
+    return (f'the median horizontal range of the points is {median:,.0f} m: are x, y, z in '
+            'millimetres? PointCloud2 coordinates are metres (REP 103); the segmenter assumes '
+            'them')
+
+
+def _centring_problem(dx, dy, r, pose) -> Optional[str]:
+    """centring_note of a sample (_sample_offsets)."""
+    pose = pose or SensorPose()
     share = float(np.mean(r < NEAR_RADIUS_M))
     if share >= MIN_NEAR_SHARE:
         return None

@@ -26,7 +26,7 @@ import numpy as np
 
 from .cloud import cloud_xyz, make_cloud, read_cloud, subset_cloud, with_float32_field
 from ..core.segmenter import SegmentationResult
-from ..core.sensor_frame import centring_note, units_note
+from ..core.sensor_frame import cloud_notes
 
 __all__ = ['FrameOutput', 'process_cloud', 'add_surface', 'input_warnings', 'STAGES',
            'frame_timings', 'surface_cloud', 'HEIGHT_FIELD', 'OUTPUT_SWITCHES', 'SURFACE_FIELDS']
@@ -158,10 +158,7 @@ def input_warnings(msg, result, xyz=None, params=None) -> list:
     """
     notes = []
     if xyz is not None:
-        pose = getattr(params, 'sensor_pose', None)
-        for note in (units_note(xyz, pose), centring_note(xyz, pose)):
-            if note:
-                notes.append(note)
+        notes += cloud_notes(xyz, getattr(params, 'sensor_pose', None))
     n = int(result.valid_mask.size)
     if n == 0:
         notes.append('empty cloud (0 points)')

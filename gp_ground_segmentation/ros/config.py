@@ -24,9 +24,9 @@ from ..core.params import SegmenterParams, describe_params, value_problem
 
 __all__ = ['NODE_NAME', 'NODE_PARAMS', 'PARAMS_FILE_KEY', 'ParameterConfigError',
            'all_param_specs', 'check_param_value', 'describe_node_params', 'is_ros_builtin',
-           'load_params_file', 'node_param_defaults', 'qos_override_topics',
-           'render_param_overrides', 'render_params_table', 'render_params_yaml', 'split_params',
-           'validate_node_params']
+           'load_params_file', 'node_param_defaults', 'params_file_values', 'params_from_values',
+           'qos_override_topics', 'render_param_overrides', 'render_params_table',
+           'render_params_yaml', 'split_params', 'validate_node_params']
 
 NODE_NAME = 'ground_segmentation'
 # Key of the shipped params file: '/**' matches the node in any namespace and under any name
@@ -145,27 +145,29 @@ def _flatten(prefix: str, tree: dict, out: dict, where: str) -> None:
 def _node_sections(doc: dict, path: tuple = ()):
     """Yield (node path, ros__parameters dict) for every section of a ROS 2 params file."""
     for key, value in doc.items():
+        section = path + (str(key),)
+        where = '/'.join(section)  # how the messages name the section
         if not isinstance(value, dict):
             raise ParameterConfigError(
-                f"'{'/'.join(path + (str(key),))}': expected a mapping (node name -> "
-                f"ros__parameters), got {type(value).__name__}; parameters go under a "
-                "'ros__parameters:' key of the node's section")
+                f"'{where}': expected a mapping (node name -> ros__parameters), got "
+                f"{type(value).__name__}; parameters go under a 'ros__parameters:' key of the "
+                "node's section")
         if 'ros__parameters' in value:
             params = value['ros__parameters']
             if params is None:  # rcl: "Cannot have a value before ros__parameters"
                 raise ParameterConfigError(
-                    f"'{'/'.join(path + (str(key),))}/ros__parameters' is empty, which the node "
-                    "(rcl) refuses; write 'ros__parameters: {}' or put parameters under it")
+                    f"'{where}/ros__parameters' is empty, which the node (rcl) refuses; write "
+                    "'ros__parameters: {}' or put parameters under it")
             if not isinstance(params, dict):
                 raise ParameterConfigError(
-                    f"'{key}/ros__parameters' must be a mapping of parameter names to values")
+                    f"'{where}/ros__parameters' must be a mapping of parameter names to values")
             others = [k for k in value if k != 'ros__parameters']
             if others:
                 raise ParameterConfigError(
-                    f"'{key}': unexpected key(s) {others} beside ros__parameters")
-            yield path + (str(key),), params
+                    f"'{where}': unexpected key(s) {others} beside ros__parameters")
+            yield section, params
         else:
-            yield from _node_sections(value, path + (str(key),))
+            yield from _node_sections(value, section)
 
 
 def _matches(section_path: tuple, node_name: str, namespace: str) -> bool:
@@ -193,7 +195,13 @@ def load_params_file(path, node_name: str = NODE_NAME, namespace: str = '/'):
     or an out-of-range value raises ParameterConfigError (a ValueError) naming the key.
     Node params missing from the file get their defaults.
     """
-    values = _file_values(path, node_name, namespace)
+    return params_from_values(path, params_file_values(path, node_name, namespace))
+
+
+def params_from_values(path, values: dict):
+    """``(SegmenterParams, node_params dict)`` of a parameter file's flattened values for this
+    node (:func:`params_file_values`), checked as :func:`load_params_file` says; ``path`` names
+    the file in the errors."""
     specs = all_param_specs()
     for name, value in values.items():
         if is_ros_builtin(name):
@@ -210,13 +218,14 @@ def load_params_file(path, node_name: str = NODE_NAME, namespace: str = '/'):
     return seg, validate_node_params(node_values)
 
 
-def qos_override_topics(path, node_name: str = NODE_NAME, namespace: str = '/') -> set:
-    """The topics named by the ``qos_overrides`` in a parameter file's sections for this node
-    (keys ``qos_overrides./TOPIC.publisher|subscription.POLICY``). rclpy applies an override
-    only to the topic's resolved name (after remapping and namespace) and ignores the others
-    without a word; the node warns about those."""
+def qos_override_topics(values: dict) -> set:
+    """The topics named by the ``qos_overrides`` among a parameter file's flattened values for
+    this node (:func:`params_file_values`; keys
+    ``qos_overrides./TOPIC.publisher|subscription.POLICY``). rclpy applies an override only to
+    the topic's resolved name (after remapping and namespace) and ignores the others without a
+    word; the node warns about those."""
     topics = set()
-    for name in _file_values(path, node_name, namespace):
+    for name in values:
         if name.startswith('qos_overrides.'):
             # topic names have no dots: the last two parts are the entity and the policy
             topics.add(name[len('qos_overrides.'):].rsplit('.', 2)[0])
@@ -240,7 +249,7 @@ def _ros_yaml_loader():
     return Loader
 
 
-def _file_values(path, node_name: str, namespace: str) -> dict:
+def params_file_values(path, node_name: str = NODE_NAME, namespace: str = '/') -> dict:
     """The flattened ``ros__parameters`` of a parameter file's sections for this node, merged
     in file order (load_params_file); ParameterConfigError when unreadable, not YAML or without
     a section for the node."""

@@ -67,8 +67,8 @@ from sensor_msgs.msg import PointCloud2
 
 from .cloud import CloudFormatError
 from .config import (NODE_NAME, NODE_PARAMS, ParameterConfigError, all_param_specs,
-                     check_param_value, is_ros_builtin, load_params_file, qos_override_topics,
-                     split_params)
+                     check_param_value, is_ros_builtin, params_file_values, params_from_values,
+                     qos_override_topics, split_params)
 from .diagnostics import ProcessingWindow, diagnostics_array, diagnostics_status
 from ..core.allocator import keep_freed_memory
 from ..core.params import SegmenterParams
@@ -530,9 +530,9 @@ def _check_params_file_sections(path: str, node) -> None:
     QoS overrides of topics this node does not have (rclpy ignores them silently; usually the
     name before remapping, '/points' for a node remapped to '/velodyne_points') get a warning:
     not an error, as a '/**' section may hold other nodes' overrides."""
-    name, namespace = node.get_name(), node.get_namespace()
-    load_params_file(path, name, namespace)
-    unused = qos_override_topics(path, name, namespace) - set(node.topic_names)
+    values = params_file_values(path, node.get_name(), node.get_namespace())  # read once
+    params_from_values(path, values)
+    unused = qos_override_topics(values) - set(node.topic_names)
     if unused:
         node.get_logger().warning(
             f"{path}: qos_overrides for {', '.join(sorted(unused))} match none of this node's "

@@ -89,3 +89,36 @@ def test_sort_in_place_sorts_like_np_sort(size):
         python = values.copy()  # the Python function (what runs without numba)
         compiled._sort_in_place(python)
         np.testing.assert_array_equal(python, np.sort(values))
+
+
+def test_compile_later_queues_a_compilation_and_runs_nothing():
+    import numba
+    kernel = numba.njit(_plus_one)  # no disk cache: a fresh compilation
+    compiled.compile_later(kernel, 1.0)  # returns at once: the compiler thread compiles it
+    assert compiled.wait(60.0)
+    assert len(kernel.signatures) == 1 and kernel(1.0) == 2.0
+    compiled.compile_later(kernel, 1.0)  # compiled already: nothing queued again
+    assert compiled.wait(60.0) and len(kernel.signatures) == 1
+    compiled.compile_later(None, 1.0)  # no numba: nothing
+
+
+def test_gp_warm_up_leaves_the_std_kernel_to_the_background_when_asked():
+    """gp_compiled.warm_up(std_now=False) (the segmenter's, when the labels do not use the GP
+    std) compiles the solve and prediction kernels and queues the std's, the background
+    compiler's first job; with std_now=True (the default) it is compiled before returning. In
+    fresh interpreters: this one has every kernel loaded already."""
+    import subprocess
+    import sys
+    from pathlib import Path
+    script = """if True:
+        from gp_ground_segmentation.core import compiled, gp_compiled
+        gp_compiled.warm_up(std_now={std_now})
+        queued = [k.py_func.__name__ for k, _ in compiled._queued]
+        print('QUEUED', queued, 'READY', len(gp_compiled._std_into.overloads))
+        """
+    root = Path(__file__).resolve().parents[1]
+    for std_now, expected in ((False, "QUEUED ['_std_into']"), (True, 'QUEUED [] READY 1')):
+        out = subprocess.run([sys.executable, '-c', script.format(std_now=std_now)], cwd=root,
+                             capture_output=True, text=True, timeout=300)
+        assert out.returncode == 0, out.stderr[-2000:]
+        assert expected in out.stdout, out.stdout

@@ -458,7 +458,7 @@ def test_broken_compiled_kernel_makes_that_segmenter_use_numpy(ramp_points, monk
 
 @pytest.mark.skipif(not gp_compiled.AVAILABLE, reason='numba not installed')
 def test_failed_warm_up_switches_the_segmenter_to_numpy(ramp_points, monkeypatch):
-    def broken():
+    def broken(std_now=True):
         raise RuntimeError('no LLVM here')
     monkeypatch.setattr(gp_compiled, 'warm_up', broken)
     seg = GroundSegmenter(backend='auto')
@@ -481,7 +481,8 @@ def test_warm_up_waits_for_background_stages_only_when_the_cache_was_filled(
         pytest.skip('numba not installed')
     slow = segmenter._GP_CACHE_LOAD_MAX_S + 0.05
     monkeypatch.setattr(gp_compiled, 'warm_up',
-                        lambda: time.sleep(slow if gp_load_s is None else gp_load_s))
+                        lambda std_now=True: time.sleep(slow if gp_load_s is None
+                                                        else gp_load_s))
     calls = []
     monkeypatch.setattr(compiled, 'wait', lambda timeout_s=None: calls.append(timeout_s))
     GroundSegmenter().warm_up()

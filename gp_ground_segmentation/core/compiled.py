@@ -28,7 +28,7 @@ try:  # numba is a regular dependency, but the package must still work without i
 except ImportError:  # pragma: no cover - the numpy references are used instead
     numba = None
 
-__all__ = ['AVAILABLE', 'kernel', 'run', 'sort_in_place', 'wait']
+__all__ = ['AVAILABLE', 'compile_later', 'kernel', 'run', 'sort_in_place', 'wait']
 
 AVAILABLE = numba is not None
 
@@ -70,6 +70,17 @@ def run(use_compiled: bool, compiled_kernel, reference, *args):
         return reference(*args)
     _queue(compiled_kernel, signature)
     return reference(*args)
+
+
+def compile_later(compiled_kernel, *args) -> None:
+    """Queue the compilation of ``compiled_kernel`` for these arguments' types on the background
+    thread, without running anything (for a kernel that is compiled before use, whose numpy twin
+    is not bit for bit the same); nothing when it already has that signature or is None."""
+    if compiled_kernel is None:
+        return
+    signature = tuple(compiled_kernel.typeof_pyval(a) for a in args)
+    if signature not in compiled_kernel.overloads:
+        _queue(compiled_kernel, signature)
 
 
 def _argument_key(args):

@@ -19,14 +19,17 @@ First call of a process: numba compiles these functions (about 1-2 s) or loads t
 on-disk cache (``cache=True``: ``__pycache__`` next to this file when that is writable, else
 numba's user cache directory; ``NUMBA_CACHE_DIR`` overrides both). The cache is filled by the
 first process that calls them, e.g. ``GroundSegmenter().warm_up()`` (the node does that at
-start) or the first ``segment()``.
+start) or the first ``segment()``. The posterior std (``_std_into``, ~0.3 s of a first compile)
+is a kernel of its own, not part of the prediction's: the labels need it only with
+``ground_threshold_std_factor`` > 0, so :func:`warm_up` can leave it to the background compiler
+(core/compiled.py) and a new install's first frame does not wait for it.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from .compiled import AVAILABLE, kernel  # numba (cached, nogil) when it imports
+from .compiled import AVAILABLE, compile_later, kernel  # numba (cached, nogil) if it imports
 
 
 def solve_batched(r, d, z, noise_var, counts, sigma_f, gain, sigma_n):
@@ -221,20 +224,19 @@ def predict_batched(r, d, counts, alpha, a_inv, r_star, d_star, sigma_f, gain, w
     """Posterior mean (minus the prior mean) and std at r_star, d_star (S, k) of every segment,
     and k* (S, n, k) [segment, training point, prediction point] for a later std_batched.
 
-    std is all zeros when ``with_std`` is False.
+    std is all zeros when ``with_std`` is False (and :func:`std_batched` is not called).
     """
     s_count, k_count = r_star.shape
-    outputs = (np.empty((s_count, k_count)), np.empty((s_count, k_count)),
-               np.empty((s_count, r.shape[1], k_count)))
-    _predict_into(r, d, counts, alpha, a_inv, r_star, d_star, sigma_f, gain, with_std,
-                  np.empty((2, k_count)), *outputs)
-    return outputs
+    mean, k_star = np.empty((s_count, k_count)), np.empty((s_count, r.shape[1], k_count))
+    _predict_into(r, d, counts, alpha, r_star, d_star, sigma_f, gain, mean, k_star)
+    std = (std_batched(counts, a_inv, k_star, sigma_f) if with_std
+           else np.zeros((s_count, k_count)))
+    return mean, std, k_star
 
 
-def _predict_into(r, d, counts, alpha, a_inv, r_star, d_star, sigma_f, gain, with_std, work,
-                  mean, std, k_star):
-    """The loops of :func:`predict_batched` (compiled), into ``mean``, ``std`` (S, k) and
-    ``k_star`` (S, n, k), none initialised; ``work`` (2, k) for :func:`_std_into`."""
+def _predict_into(r, d, counts, alpha, r_star, d_star, sigma_f, gain, mean, k_star):
+    """The loops of :func:`predict_batched` (compiled), into ``mean`` (S, k) and ``k_star``
+    (S, n, k), neither initialised."""
     s_count, k_count = r_star.shape
     for s in range(s_count):  # padded slots stay 0
         for j in range(k_star.shape[1]):
@@ -254,25 +256,21 @@ def _predict_into(r, d, counts, alpha, a_inv, r_star, d_star, sigma_f, gain, wit
                 k_star[s, j, c] = kj
                 v += kj * alpha[s, j]
             mean[s, c] = v
-    if with_std:
-        _std_into(counts, a_inv, k_star, sigma_f, std, work)
-    else:
-        for s in range(s_count):
-            for c in range(k_count):
-                std[s, c] = 0.0
 
 
 if AVAILABLE:
     _resolve_into = kernel(_resolve_into)
-    _std_into = kernel(_std_into)  # before _predict_into: it calls it
+    _std_into = kernel(_std_into)
     _predict_into = kernel(_predict_into)
 
 
-def warm_up() -> None:
+def warm_up(std_now: bool = True) -> None:
     """Compile (or load from numba's cache) the kernels now instead of inside the first frame.
 
     The node's worker thread calls this before it waits for clouds, so the first frame does not
-    pay the compilation and drop the frames that arrive meanwhile. A no-op without numba.
+    pay the compilation and drop the frames that arrive meanwhile. ``std_now`` False (for labels
+    that do not use the std) queues the posterior std's kernel for the background compiler
+    instead (:func:`queue_std`). A no-op without numba.
     """
     if AVAILABLE:
         one = np.ones((1, 2))
@@ -281,6 +279,18 @@ def warm_up() -> None:
                                                          one * 0.0, counts, 1.0, 1.0, 0.1)
         resolve_batched(np.array([[0.0, 1.0]]), one, one, one * 0.0, counts, 1.0, 1.0, 0.1,
                         np.zeros(1, dtype=np.bool_), logdet, alpha, a_inv, k, q)
-        _, _, k_star = predict_batched(np.array([[0.0, 1.0]]), one, counts, alpha, a_inv, one,
-                                       one, 1.0, 1.0, True)
-        std_batched(counts, a_inv, k_star, 1.0)
+        predict_batched(np.array([[0.0, 1.0]]), one, counts, alpha, a_inv, one, one, 1.0, 1.0,
+                        std_now)
+        if not std_now:
+            queue_std()
+
+
+def queue_std() -> None:
+    """Have the background compiler (core/compiled.py) compile, or load from the cache, the
+    posterior std's kernel. Its numpy twin differs in round-off, so nothing runs it meanwhile:
+    a std asked for before it is ready compiles it in the asking thread (after the compilation
+    running then: numba's compiler lock). A no-op without numba or when it is ready."""
+    if AVAILABLE:
+        k = 2
+        compile_later(_std_into, np.array([2], dtype=np.intp), np.zeros((1, k, k)),
+                      np.zeros((1, k, k)), 1.0, np.empty((1, k)), np.empty((2, k)))

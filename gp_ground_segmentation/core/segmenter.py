@@ -479,13 +479,19 @@ class GroundSegmenter:
         _GP_CACHE_LOAD_MAX_S: then the cache was empty and they are compiling, which frames need
         not wait for). See gp_compiled.py for where the cache lives.
 
+        The GP's posterior std at the bin edges is compiled now only when the labels use it
+        (``ground_threshold_std_factor`` > 0); otherwise only the ground surface's z_std reads
+        it, and it is the first job of the background compiler (~0.5 s less before the first
+        frame of a new install; a z_std read in the ~0.3 s before it is ready waits for it).
+
         On failure this segmenter switches to numpy and the error is raised for the caller to
         report; segmenting still works.
         """
         if self._backend == 'numba':
             start = time.perf_counter()
+            labels_use_std = self._params.ground_threshold_std_factor > 0
             try:
-                gp_compiled.warm_up()
+                gp_compiled.warm_up(std_now=labels_use_std)
             except Exception:
                 self._backend = 'numpy'
                 raise
@@ -493,7 +499,9 @@ class GroundSegmenter:
             # Queued in the order a frame needs them, for float32 input (what the node decodes
             # from float32 fields) first, so that frames leave the numpy path stage by stage
             # on a new install; then the float64 signatures; the surface's offsets last (only
-            # the ground_surface output reads them).
+            # the ground_surface output reads them). The GP's std, when the labels do not use
+            # it, went first (gp_compiled.warm_up): it is not bit for bit its numpy twin, so a
+            # z_std read before it is compiled waits for it.
             grids = {}
             for dtype in (np.float32, np.float64):  # both input precisions of these passes
                 xyz = np.ones((3, 2), dtype=dtype)

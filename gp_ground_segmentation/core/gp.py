@@ -735,5 +735,17 @@ class FrameGP:
 
     def std_from_kernel(self, sol: GPSolution, k_star) -> np.ndarray:
         """Posterior std (S, k) from the k* that ``predict(..., return_kernel=True)`` returned
-        for ``sol``: the same numbers as ``predict(..., with_std=True)`` gives."""
-        return gp_compiled.std_batched(self.counts, sol.a_inv, k_star, float(sol.theta[0]))
+        for ``sol``: the same numbers as ``predict(..., with_std=True)`` gives.
+
+        The std's kernel may be compiled only now (the segmenter's warm_up leaves it to the
+        background when the labels do not use it); should that fail, numpy computes it (equal
+        to round-off) and the error is kept in ``compiled_error``.
+        """
+        sigma_f = float(sol.theta[0])
+        try:
+            return gp_compiled.std_batched(self.counts, sol.a_inv, k_star, sigma_f)
+        except Exception as exc:  # noqa: BLE001 - numba compile/runtime failure
+            self.compiled_error = str(exc)
+        # k* is (S, n, k) here: [segment, training point, prediction point]
+        reduce = np.einsum('sic,sij,sjc->sc', k_star, sol.a_inv, k_star, optimize=True)
+        return np.sqrt(np.maximum(sigma_f * sigma_f - reduce, 0.0))  # clamp round-off

@@ -666,3 +666,20 @@ def test_compiled_padding_equals_the_numpy_reference(seed, with_anchor):
     for ours, reference in zip(gp_module._pad_compiled(*args), gp_module._pad_numpy(*args)):
         assert ours.dtype == reference.dtype and ours.shape == reference.shape
         np.testing.assert_array_equal(ours, reference)
+
+
+def test_a_failed_std_kernel_is_remembered_not_compiled_again(monkeypatch):
+    """std_batched calls its kernel directly (not through compiled.run): a compile failure,
+    here or in the background compiler, must not be retried at every surface read."""
+    from gp_ground_segmentation.core import gp_compiled
+    calls = []
+
+    def broken(*args):
+        calls.append(1)
+        raise RuntimeError('no LLVM here')
+    monkeypatch.setattr(gp_compiled, '_std_into', broken)
+    args = (np.array([2], dtype=np.intp), np.zeros((1, 2, 2)), np.zeros((1, 2, 2)), 1.0)
+    for _ in range(3):
+        with pytest.raises(RuntimeError):
+            gp_compiled.std_batched(*args)
+    assert calls == [1]

@@ -508,3 +508,44 @@ def test_warm_up_queues_every_compiled_stage_a_frame_needs():
                          text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
     assert 'MISSING' not in out.stdout, out.stdout
+
+
+@pytest.mark.parametrize('std_factor, std_now', [(0.0, False), (0.5, True)])
+def test_warm_up_compiles_the_gp_std_first_only_if_labels_use_it(monkeypatch, std_factor,
+                                                                 std_now):
+    from gp_ground_segmentation.core import gp_compiled
+    asked = []
+    monkeypatch.setattr(gp_compiled, 'warm_up', lambda std_now=True: asked.append(std_now))
+    GroundSegmenter(SegmenterParams(ground_threshold_std_factor=std_factor),
+                    backend='numba').warm_up()
+    assert asked == [std_now]
+
+
+def test_the_queued_gp_std_signature_is_the_one_frames_use():
+    """warm_up() leaves the GP std to the background compiler with made-up arguments: their
+    types must be those of a real z_std read and a details frame, or the queued compile is
+    wasted and the first read compiles another signature. In a fresh interpreter (this one
+    has the kernel loaded already)."""
+    import subprocess
+    import sys
+    from gp_ground_segmentation.core import compiled
+    if not compiled.AVAILABLE:
+        pytest.skip('numba not installed')
+    script = """if True:
+        from gp_ground_segmentation import GroundSegmenter
+        from gp_ground_segmentation.core import compiled, gp_compiled
+        from scenes.synthetic import make_scene, simulate_scan
+        seg = GroundSegmenter()
+        seg.warm_up()
+        queued = [s for k, s in compiled._queued if k is gp_compiled._std_into]
+        points = simulate_scan(make_scene('mixed'), seed=3).points
+        seg.segment(points).ground_surface.z_std
+        seg.segment(points, details=True)
+        used = list(gp_compiled._std_into.signatures)
+        print('QUEUED', len(queued), 'SAME', used == queued)
+        """
+    root = Path(__file__).resolve().parents[1]
+    out = subprocess.run([sys.executable, '-c', script], cwd=root, capture_output=True,
+                         text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert 'QUEUED 1 SAME True' in out.stdout, out.stdout

@@ -28,7 +28,8 @@ try:  # numba is a regular dependency, but the package must still work without i
 except ImportError:  # pragma: no cover - the numpy references are used instead
     numba = None
 
-__all__ = ['AVAILABLE', 'compile_later', 'kernel', 'run', 'sort_in_place', 'wait']
+__all__ = ['AVAILABLE', 'compile_later', 'failed', 'kernel', 'mark_failed', 'run',
+           'sort_in_place', 'wait']
 
 AVAILABLE = numba is not None
 
@@ -81,6 +82,16 @@ def compile_later(compiled_kernel, *args) -> None:
     signature = tuple(compiled_kernel.typeof_pyval(a) for a in args)
     if signature not in compiled_kernel.overloads:
         _queue(compiled_kernel, signature)
+
+
+def failed(compiled_kernel) -> bool:
+    """True once ``compiled_kernel`` failed to compile (here or in the background thread)."""
+    return compiled_kernel in _failed
+
+
+def mark_failed(compiled_kernel) -> None:
+    """Remember that ``compiled_kernel`` failed (for kernels called directly, not by run)."""
+    _failed.add(compiled_kernel)
 
 
 def _argument_key(args):

@@ -21,15 +21,18 @@ numba's user cache directory; ``NUMBA_CACHE_DIR`` overrides both). The cache is 
 first process that calls them, e.g. ``GroundSegmenter().warm_up()`` (the node does that at
 start) or the first ``segment()``. The posterior std (``_std_into``, ~0.3 s of a first compile)
 is a kernel of its own, not part of the prediction's: the labels need it only with
-``ground_threshold_std_factor`` > 0, so :func:`warm_up` can leave it to the background compiler
-(core/compiled.py) and a new install's first frame does not wait for it.
+``ground_threshold_std_factor`` > 0 (and ``segment(details=True)`` reports it), so
+:func:`warm_up` can leave it to the background compiler (core/compiled.py) and a new install's
+first frame does not wait for it. A process that ends before the background compiler reaches
+it leaves it for the next one to compile (the README's warm-up command waits for it).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from .compiled import AVAILABLE, compile_later, kernel  # numba (cached, nogil) if it imports
+from .compiled import (AVAILABLE, compile_later, failed, kernel,  # numba (cached, nogil)
+                       mark_failed)
 
 
 def solve_batched(r, d, z, noise_var, counts, sigma_f, gain, sigma_n):
@@ -180,10 +183,20 @@ def _resolve_into(r, d, z, noise_var, counts, sigma_f, gain, sigma_n, changed,
 
 def std_batched(counts, a_inv, k_star, sigma_f):
     """Posterior std sqrt(sigma_f^2 - k*^T A^-1 k*) (S, k) from the (S, n, k) k* of
-    :func:`predict_batched`."""
+    :func:`predict_batched`.
+
+    Raises when the kernel cannot compile; the failure is remembered (compiled.failed), here
+    or in the background compiler, so later calls raise at once instead of compiling again.
+    """
+    if failed(_std_into):
+        raise RuntimeError('the compiled GP std kernel failed to compile earlier')
     s_count, _, k_count = k_star.shape
     std = np.empty((s_count, k_count))
-    _std_into(counts, a_inv, k_star, sigma_f, std, np.empty((2, k_count)))
+    try:
+        _std_into(counts, a_inv, k_star, sigma_f, std, np.empty((2, k_count)))
+    except Exception:
+        mark_failed(_std_into)
+        raise
     return std
 
 

@@ -480,10 +480,10 @@ class GroundSegmenter:
         not wait for). See gp_compiled.py for where the cache lives.
 
         The GP's posterior std at the bin edges is compiled now only when the labels use it
-        (``ground_threshold_std_factor`` > 0); otherwise only the ground surface's z_std reads
-        it, and it is the first job of the background compiler (0.3-0.45 s less warm_up on a
-        new install, 0.2-0.4 s less to the first labels; a z_std read in the ~0.3 s before it
-        is ready waits for it).
+        (``ground_threshold_std_factor`` > 0); otherwise only the ground surface's z_std and
+        ``segment(details=True)`` read it, and it is the first job of the background compiler
+        (0.26-0.46 s less warm_up on a new install, 0.2-0.4 s less to the first labels; a read
+        in the ~0.3 s before it is ready waits for it).
 
         On failure this segmenter switches to numpy and the error is raised for the caller to
         report; segmenting still works.

@@ -671,7 +671,7 @@ def test_compiled_padding_equals_the_numpy_reference(seed, with_anchor):
 def test_a_failed_std_kernel_is_remembered_not_compiled_again(monkeypatch):
     """std_batched calls its kernel directly (not through compiled.run): a compile failure,
     here or in the background compiler, must not be retried at every surface read."""
-    from gp_ground_segmentation.core import gp_compiled
+    from gp_ground_segmentation.core import compiled, gp_compiled
     calls = []
 
     def broken(*args):
@@ -679,7 +679,10 @@ def test_a_failed_std_kernel_is_remembered_not_compiled_again(monkeypatch):
         raise RuntimeError('no LLVM here')
     monkeypatch.setattr(gp_compiled, '_std_into', broken)
     args = (np.array([2], dtype=np.intp), np.zeros((1, 2, 2)), np.zeros((1, 2, 2)), 1.0)
-    for _ in range(3):
-        with pytest.raises(RuntimeError):
-            gp_compiled.std_batched(*args)
-    assert calls == [1]
+    try:
+        for _ in range(3):
+            with pytest.raises(RuntimeError):
+                gp_compiled.std_batched(*args)
+        assert calls == [1] and compiled.failed(broken)
+    finally:  # the set of failed kernels is the process's: other tests check it is empty
+        compiled._failed.discard(broken)

@@ -11,6 +11,8 @@ Each is a function from arrays to a mask or a height and has a ``use_*`` switch 
 * :func:`outlier_candidates` (``use_outlier_rejection``): leave-one-out residual tests that
   drop below-ground reflection noise and obstacle tops from the training set
   (``outlier_worst_per_segment``: at most the worst obstacle top per segment and pass; off).
+* :func:`wide_terrain_candidates` (``outlier_wide_terrain_m``): an obstacle top that both
+  neighbouring segments continue at its height is terrain, and keeps training the GP (off).
 * ``start_height_m`` of :func:`elevated_plateaus` (``plateau_from_sensor_ground``): the plateau
   test of every segment starts from the ground under the sensor.
 * :func:`one_point_line_slopes` (``use_chord_slope_for_single_points``): one-point lines get
@@ -281,6 +283,39 @@ def outlier_candidates(loo_residual: np.ndarray, *, above_m: float, below_m: flo
             top = np.max(np.where(np.isnan(loo_residual), -np.inf, loo_residual), axis=1)
             above &= loo_residual >= top[:, None]
         return above | (loo_residual < -below_m)
+
+
+def wide_terrain_candidates(mask: np.ndarray, z: np.ndarray, tolerance_m: float) -> np.ndarray:
+    """The ``mask`` (M, N) candidates that both neighbouring segments continue: segment m - 1
+    and segment m + 1 (segments wrap around) each have a candidate in bin n - 1, n or n + 1
+    whose height ``z`` (M, N; NaN where none) is within ``tolerance_m`` of the candidate's, and
+    neither of its own segment's candidates in bins n - 1 and n + 1 lies more than
+    ``tolerance_m`` below it (a step up from the ground next to it is an object).
+
+    Why: the leave-one-out test calls a candidate an obstacle top when it stands far above
+    what its segment's other candidates predict. That is a bin filled by one object (its
+    lowest point on the object), a few segments wide at most; but it is also sparse far
+    ground on rising terrain, one candidate after a long gap (16-beam rings, high mounts),
+    where the segment's near candidates predict the flat. Terrain is wider than a 3 degree
+    segment: its neighbours' candidates at that range lie at its height. Both sides are
+    required, so that an object two segments wide, or one beside a raised neighbour, is not
+    called terrain. What it cannot tell from terrain: points above the ground in rings all around
+    the sensor (test_malformed's every-5th-point denormal z), which is why it is off by default.
+    """
+    m, n = z.shape
+    padded = np.full((m, n + 2), np.nan)
+    padded[:, 1:-1] = z
+    out = mask.copy()
+    with np.errstate(invalid='ignore'):
+        for side in (1, -1):
+            neighbour = np.roll(padded, side, axis=0)
+            close = np.zeros((m, n), dtype=bool)
+            for k in range(3):  # bins n - 1, n, n + 1 of the neighbouring segment
+                close |= np.abs(neighbour[:, k:k + n] - z) <= tolerance_m
+            out &= close
+        for k in (0, 2):  # a step up from its own segment's next candidates: an object
+            out &= ~(padded[:, k:k + n] < z - tolerance_m)
+    return out
 
 
 def cross_segment_rise(edges: np.ndarray, mean: np.ndarray, max_slope: float,

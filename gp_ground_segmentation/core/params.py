@@ -178,6 +178,14 @@ class SegmenterParams:
         False, 'ours: each outlier pass drops at most one obstacle-top candidate per segment '
         '(the highest leave-one-out residual above outlier_residual_m), so ground next to an '
         'obstacle top is not dropped with it; false drops all above the limit at once')
+    outlier_wide_terrain_m: float = _param(
+        0.0, 'ours (off by default; 0.5 for 16- and 32-beam sensors): an obstacle-top candidate '
+        'keeps training the GP when both neighbouring segments have a candidate within one bin '
+        'of it and within this height (m) of it, and its own segment\'s next candidates are not '
+        'more than this below it: terrain is wider than a segment, a bin filled by one object is '
+        'not. Sparse far ground on rising terrain (16-beam rings, high mounts) is rejected as '
+        'obstacle tops without it; off by default because rings of points above the ground '
+        'all around the sensor are kept too; 0 turns it off', 0.0, 10.0)
 
     use_anchor: bool = _param(
         True, 'ours, not the paper\'s: every segment\'s GP gets a shared pseudo-candidate at '

@@ -658,6 +658,12 @@ class GroundSegmenter:
                            sol.a_inv, gp.valid, gp.is_anchor, gp.segments, gp.bins, outliers,
                            float(p.outlier_residual_m), float(p.noise_spike_m),
                            bool(p.outlier_worst_per_segment), float(p.outlier_std_factor))
+        if new.any() and p.outlier_wide_terrain_m > 0:
+            # obstacle tops (residual above, not the reflection noise below) that the
+            # neighbouring segments continue are terrain: they keep training
+            above = new & (gp.to_grid(gp.loo_residuals(sol), np.nan) > 0)
+            new &= ~additions.wide_terrain_candidates(above, gp.to_grid(gp.z, np.nan),
+                                                      p.outlier_wide_terrain_m)
         if not new.any():
             return gp, sol, outliers
         outliers = outliers | new

@@ -295,6 +295,13 @@ def paciorek_kernel(r1, l1, r2, l2, sigma_f):
     return sigma_f * sigma_f * prefactor * np.exp(-diff * diff / s)
 
 
+def _posterior_std(k_star, a_inv, sigma_f) -> np.ndarray:
+    """numpy's posterior std sqrt(sigma_f^2 - k*^T A^-1 k*) (S, k) from k* (S, k, n)
+    [segment, prediction point, training point] and A^-1 (S, n, n)."""
+    reduce = np.einsum('skn,snm,skm->sk', k_star, a_inv, k_star, optimize=True)
+    return np.sqrt(np.maximum(sigma_f * sigma_f - reduce, 0.0))  # clamp round-off
+
+
 @dataclass
 class GPSolution:
     """Factorisation of A = K + sigma_n^2 I for every segment at one theta."""
@@ -727,10 +734,7 @@ class FrameGP:
                                  self.r[:, None, :], l_train, sigma_f)
         k_star = np.where(self.valid[:, None, :], k_star, 0.0)
         mean = np.einsum('skn,sn->sk', k_star, sol.alpha) + self.mean
-        std = None
-        if with_std:
-            reduce = np.einsum('skn,snm,skm->sk', k_star, sol.a_inv, k_star, optimize=True)
-            std = np.sqrt(np.maximum(sigma_f * sigma_f - reduce, 0.0))  # clamp round-off
+        std = _posterior_std(k_star, sol.a_inv, sigma_f) if with_std else None
         return (mean, std, None) if return_kernel else (mean, std)
 
     def std_from_kernel(self, sol: GPSolution, k_star) -> np.ndarray:
@@ -746,6 +750,5 @@ class FrameGP:
             return gp_compiled.std_batched(self.counts, sol.a_inv, k_star, sigma_f)
         except Exception as exc:  # noqa: BLE001 - numba compile/runtime failure
             self.compiled_error = str(exc)
-        # k* is (S, n, k) here: [segment, training point, prediction point]
-        reduce = np.einsum('sic,sij,sjc->sc', k_star, sol.a_inv, k_star, optimize=True)
-        return np.sqrt(np.maximum(sigma_f * sigma_f - reduce, 0.0))  # clamp round-off
+        # the compiled prediction's k* is (S, n, k): [segment, training point, prediction point]
+        return _posterior_std(k_star.transpose(0, 2, 1), sol.a_inv, sigma_f)

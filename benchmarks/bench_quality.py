@@ -257,8 +257,8 @@ def ablation_variants() -> dict:
     * outlier limit fixed: ``outlier_std_factor`` 0 (the leave-one-out std does not widen it);
     * raw length factors: ``length_factor_smoothing_passes`` 0 (the paper's d_i, not smoothed
       along the segment);
-    * the wide-terrain rule on: ``outlier_wide_terrain_m`` 0.5 (off by default; obstacle tops
-      that both neighbouring segments continue keep training);
+    * the wide-terrain rule off: ``outlier_wide_terrain_m`` 0 (obstacle tops that both
+      neighbouring segments continue are rejected like any other);
     * every bool field of SegmenterParams (``use_*`` switches and others) flipped, discovered at
       run time so that new switches appear without code changes.
     """
@@ -274,7 +274,7 @@ def ablation_variants() -> dict:
                                                    'optimizer_max_evaluations': 0},
         'outlier_std_factor=0': {'outlier_std_factor': 0.0},
         'length_factor_smoothing_passes=0': {'length_factor_smoothing_passes': 0},
-        'outlier_wide_terrain_m=0.5': {'outlier_wide_terrain_m': 0.5},
+        'outlier_wide_terrain_m=0': {'outlier_wide_terrain_m': 0.0},
     }
     for f in dataclasses.fields(SegmenterParams):
         if isinstance(f.default, bool):

@@ -3,7 +3,8 @@
 
 Thresholds sit just under what the defaults reach (benchmarks/RESULTS.md, "Ground quality",
 measured 2026-11-26, vertical-structure test and cross-slope threshold on; the families
-measured again 2026-11-27 with the 3-sigma outlier limit and the smoothed length factors): a
+measured again 2026-11-27 with the 3-sigma outlier limit, the smoothed length factors and the
+wide-terrain rule, without which the beams16, beams64, near and mount-height rows fail): a
 change that costs a family or a real scene more than about half a point of F1 fails here. The
 issue-10 targets that are met are asserted as such (crest recall).
 """
@@ -29,13 +30,15 @@ def pooled(frames):
 # family: (minimum pooled F1, minimum pooled recall); measured F1 / recall in the comments
 FAMILIES = {
     'crest': (0.992, 0.993),  # 0.997 / 0.998; issue-10 target: downhill-past-crest recall 0.98
-    'valley': (0.982, 0.969),  # 0.987 / 0.974
-    'cross_slope': (0.989, 0.984),  # 0.994 / 0.989
-    'rough': (0.988, 0.981),  # 0.993 / 0.986
-    'near_person_car': (0.989, 0.986),  # 0.994 / 0.991
-    'high_mount': (0.988, 0.982),  # 0.993 / 0.987 (3-5 m mounts on 4-10 deg slopes)
+    'valley': (0.982, 0.970),  # 0.987 / 0.975
+    'cross_slope': (0.990, 0.986),  # 0.995 / 0.991
+    'rough': (0.989, 0.984),  # 0.994 / 0.989
+    'near_person_car': (0.992, 0.992),  # 0.997 / 0.997
+    'high_mount': (0.990, 0.987),  # 0.995 / 0.992 (3-5 m mounts on 4-10 deg slopes)
     'tilted': (0.990, 0.988),  # 0.995 / 0.993 (pitch and roll up to 10 deg)
-    'beams16': (0.975, 0.968),  # 0.980 / 0.973 (16-beam organised scans)
+    'mount_height': (0.994, 0.993),  # 0.999 / 0.998 (0.5-2.5 m mounts)
+    'beams16': (0.984, 0.988),  # 0.989 / 0.993 (16-beam organised scans)
+    'beams64': (0.990, 0.988),  # 0.995 / 0.993
 }
 
 

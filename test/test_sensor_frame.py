@@ -45,7 +45,8 @@ def test_offset_cloud_with_the_pose_gives_the_sensor_frame_result(scan):
     # ground_height is in the input's frame: shifted by the z offset
     assert np.allclose(result.ground_height, reference.ground_height + 1.8, atol=1e-9,
                        equal_nan=True)
-    # without the pose the same cloud is segmented differently (grid centred 21 m away)
+    # without the pose the same cloud is segmented differently (grid centred 21 m away):
+    # 2.7 % of the points (4.4 % with the wide-terrain rule, outlier_wide_terrain_m, off)
     unaware = GroundSegmenter().segment(scan + offset)
     assert np.count_nonzero(unaware.ground_mask != reference.ground_mask) > 0.02 * len(scan)
 

@@ -12,7 +12,8 @@ Each is a function from arrays to a mask or a height and has a ``use_*`` switch 
   drop below-ground reflection noise and obstacle tops from the training set
   (``outlier_worst_per_segment``: at most the worst obstacle top per segment and pass; off).
 * :func:`wide_terrain_candidates` (``outlier_wide_terrain_m``): an obstacle top that both
-  neighbouring segments continue at its height is terrain, and keeps training the GP (off).
+  neighbouring segments continue at its height, with no ground right beside it below, is
+  terrain, and keeps training the GP.
 * ``start_height_m`` of :func:`elevated_plateaus` (``plateau_from_sensor_ground``): the plateau
   test of every segment starts from the ground under the sensor.
 * :func:`one_point_line_slopes` (``use_chord_slope_for_single_points``): one-point lines get
@@ -285,12 +286,16 @@ def outlier_candidates(loo_residual: np.ndarray, *, above_m: float, below_m: flo
         return above | (loo_residual < -below_m)
 
 
-def wide_terrain_candidates(mask: np.ndarray, z: np.ndarray, tolerance_m: float) -> np.ndarray:
+def wide_terrain_candidates(mask: np.ndarray, z: np.ndarray, tolerance_m: float,
+                            r: np.ndarray | None = None, max_slope: float = np.inf) -> np.ndarray:
     """The ``mask`` (M, N) candidates that both neighbouring segments continue: segment m - 1
     and segment m + 1 (segments wrap around) each have a candidate in bin n - 1, n or n + 1
     whose height ``z`` (M, N; NaN where none) is within ``tolerance_m`` of the candidate's, and
-    neither of its own segment's candidates in bins n - 1 and n + 1 lies more than
-    ``tolerance_m`` below it (a step up from the ground next to it is an object).
+    no candidate in bins n - 1 .. n + 1 of those three segments (its own segment: n - 1 and
+    n + 1) lies more than ``tolerance_m`` below it (a step up from the ground next to it is an
+    object), and, given the candidates' ranges ``r`` (M, N), it rises above the previous
+    candidate of its own segment (the nearest at a smaller bin, however far) no steeper than
+    ``max_slope`` (dz / dr).
 
     Why: the leave-one-out test calls a candidate an obstacle top when it stands far above
     what its segment's other candidates predict. That is a bin filled by one object (its
@@ -299,8 +304,16 @@ def wide_terrain_candidates(mask: np.ndarray, z: np.ndarray, tolerance_m: float)
     where the segment's near candidates predict the flat. Terrain is wider than a 3 degree
     segment: its neighbours' candidates at that range lie at its height. Both sides are
     required, so that an object two segments wide, or one beside a raised neighbour, is not
-    called terrain. What it cannot tell from terrain: points above the ground in rings all around
-    the sensor (test_malformed's every-5th-point denormal z), which is why it is off by default.
+    called terrain. The step test looks into the neighbouring segments too: points above the
+    ground in rings all around the sensor (test_malformed's every-5th-point denormal z, 1.73 m
+    up) are continued by every segment and often have no candidate of their own segment in the
+    bins beside them, but the segments beside them do, on the ground (12 of 780 such points
+    became ground when only the own segment's bins were looked at). The slope test keeps a wall
+    seen over an occlusion shadow from being terrain: in a room seen from 0.3 m, the lowest
+    visible part of the far wall (0.9 m up, the floor before it hidden behind furniture) is
+    continued by the neighbouring segments like terrain, but it rises 0.65 m per metre from the
+    floor before the shadow, where far ground on a hill seen by a 16-beam sensor rises gently
+    over the gap (benchmarks/RESULTS.md, "The wide-terrain rule on by default").
     """
     m, n = z.shape
     padded = np.full((m, n + 2), np.nan)
@@ -312,10 +325,30 @@ def wide_terrain_candidates(mask: np.ndarray, z: np.ndarray, tolerance_m: float)
             close = np.zeros((m, n), dtype=bool)
             for k in range(3):  # bins n - 1, n, n + 1 of the neighbouring segment
                 close |= np.abs(neighbour[:, k:k + n] - z) <= tolerance_m
+                # ... and none of them lower by more than that: a step up from the ground
+                out &= ~(neighbour[:, k:k + n] < z - tolerance_m)
             out &= close
         for k in (0, 2):  # a step up from its own segment's next candidates: an object
             out &= ~(padded[:, k:k + n] < z - tolerance_m)
+        if r is not None:
+            out &= ~(_slope_from_previous_candidate(z, r) > max_slope)
     return out
+
+
+def _slope_from_previous_candidate(z: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """(M, N) dz / dr from each candidate's previous candidate in its segment (the nearest known
+    one at a smaller bin) to it; NaN where either is missing."""
+    m, n = z.shape
+    known = np.isfinite(z)
+    # the last known bin up to each bin, shifted by one: the previous known bin (-1: none)
+    last = np.maximum.accumulate(np.where(known, np.arange(n), -1), axis=1)
+    previous = np.full((m, n), -1)
+    previous[:, 1:] = last[:, :-1]
+    rows = np.arange(m)[:, None]
+    at = np.maximum(previous, 0)
+    with np.errstate(invalid='ignore', divide='ignore'):
+        slope = (z - z[rows, at]) / (r - r[rows, at])
+    return np.where(known & (previous >= 0), slope, np.nan)
 
 
 def cross_segment_rise(edges: np.ndarray, mean: np.ndarray, max_slope: float,

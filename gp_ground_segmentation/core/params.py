@@ -179,13 +179,18 @@ class SegmenterParams:
         '(the highest leave-one-out residual above outlier_residual_m), so ground next to an '
         'obstacle top is not dropped with it; false drops all above the limit at once')
     outlier_wide_terrain_m: float = _param(
-        0.0, 'ours (off by default; 0.5 for 16- and 32-beam sensors): an obstacle-top candidate '
-        'keeps training the GP when both neighbouring segments have a candidate within one bin '
-        'of it and within this height (m) of it, and its own segment\'s next candidates are not '
-        'more than this below it: terrain is wider than a segment, a bin filled by one object is '
+        1.0, 'ours: an obstacle-top candidate keeps training the GP when both neighbouring '
+        'segments have a candidate within one bin of it and within this height (m) of it, and '
+        'no candidate within one bin of it, in its own segment or the two beside it, lies more '
+        'than this below it: terrain is wider than a segment, a bin filled by one object is '
         'not. Sparse far ground on rising terrain (16-beam rings, high mounts) is rejected as '
-        'obstacle tops without it; off by default because rings of points above the ground '
-        'all around the sensor are kept too; 0 turns it off', 0.0, 10.0)
+        'obstacle tops without it; 0 turns it off', 0.0, 10.0)
+    outlier_wide_terrain_max_slope: float = _param(
+        0.3, 'ours: the wide-terrain rule (outlier_wide_terrain_m) keeps a candidate only if it '
+        'rises above the previous candidate of its own segment no steeper than this (dz/dr, '
+        'dimensionless): the lowest visible part of a wall behind an occlusion shadow is '
+        'continued by its neighbours like terrain, but stands steeply above the ground before '
+        'the shadow', 0.0, 100.0)
 
     use_anchor: bool = _param(
         True, 'ours, not the paper\'s: every segment\'s GP gets a shared pseudo-candidate at '

@@ -662,8 +662,9 @@ class GroundSegmenter:
             # obstacle tops (residual above, not the reflection noise below) that the
             # neighbouring segments continue are terrain: they keep training
             above = new & (gp.to_grid(gp.loo_residuals(sol), np.nan) > 0)
-            new &= ~additions.wide_terrain_candidates(above, gp.to_grid(gp.z, np.nan),
-                                                      p.outlier_wide_terrain_m)
+            new &= ~additions.wide_terrain_candidates(
+                above, gp.to_grid(gp.z, np.nan), p.outlier_wide_terrain_m,
+                r=gp.to_grid(gp.r, np.nan), max_slope=p.outlier_wide_terrain_max_slope)
         if not new.any():
             return gp, sol, outliers
         outliers = outliers | new

@@ -461,6 +461,34 @@ def test_compiled_cross_segment_rise_equals_the_numpy_reference(seed):
     np.testing.assert_array_equal(ours, reference)
 
 
+@pytest.mark.parametrize('seed', range(30))
+def test_compiled_wide_terrain_equals_the_numpy_reference(seed):
+    """The compiled wide-terrain pass gives the numpy reference's mask: random grids with empty
+    bins, terraces of nearly equal heights (comparisons at the tolerance), equal ranges (an
+    infinite slope), one or two segments (a neighbour that is the segment itself), no r."""
+    from gp_ground_segmentation.core import additions
+    if additions._wide_terrain_compiled is None:
+        pytest.skip('numba not installed')
+    rng = np.random.default_rng(seed)
+    m_count, n_bins = int(rng.integers(1, 12)), int(rng.integers(1, 12))
+    z = rng.choice([0.0, 0.5, 1.0, 2.0], (m_count, n_bins)) + rng.normal(0.0, 0.3) * (seed % 2)
+    z[rng.random(z.shape) < 0.3] = NAN
+    r = np.sort(rng.uniform(1.0, 20.0, (m_count, n_bins)), axis=1)
+    if n_bins > 2:
+        r[:, 2] = r[:, 1]
+    mask = rng.random(z.shape) < 0.6
+    tolerance, slope = float(rng.choice([0.5, 1.0])), float(rng.choice([0.1, 0.3, np.inf]))
+    for ranges in (r, None):
+        args = (mask, z, tolerance)
+        options = {'r': ranges, 'max_slope': slope}
+        reference = additions.wide_terrain_candidates(*args, **options, compiled=False)
+        compiled = additions._wide_terrain_compiled(
+            mask, z, np.full(z.shape, NAN) if ranges is None else ranges, tolerance, slope)
+        np.testing.assert_array_equal(compiled, reference)
+        np.testing.assert_array_equal(additions.wide_terrain_candidates(*args, **options),
+                                      reference)
+
+
 # --- compiled chord slopes and first-line intercepts == numpy references ---------------------
 
 def _random_lines(seed):

@@ -287,7 +287,8 @@ def outlier_candidates(loo_residual: np.ndarray, *, above_m: float, below_m: flo
 
 
 def wide_terrain_candidates(mask: np.ndarray, z: np.ndarray, tolerance_m: float,
-                            r: np.ndarray | None = None, max_slope: float = np.inf) -> np.ndarray:
+                            r: np.ndarray | None = None, max_slope: float = np.inf,
+                            compiled: bool = True) -> np.ndarray:
     """The ``mask`` (M, N) candidates that both neighbouring segments continue: segment m - 1
     and segment m + 1 (segments wrap around) each have a candidate in bin n - 1, n or n + 1
     whose height ``z`` (M, N; NaN where none) is within ``tolerance_m`` of the candidate's, and
@@ -314,7 +315,19 @@ def wide_terrain_candidates(mask: np.ndarray, z: np.ndarray, tolerance_m: float,
     continued by the neighbouring segments like terrain, but it rises 0.65 m per metre from the
     floor before the shadow, where far ground on a hill seen by a 16-beam sensor rises gently
     over the gap (benchmarks/RESULTS.md, "The wide-terrain rule on by default").
+
+    ``compiled``: one numba pass over the asked-for candidates when numba imports (else the
+    numpy reference, whole-grid shifts); both give the same mask.
     """
+    mask = np.ascontiguousarray(mask, dtype=bool)
+    z = np.ascontiguousarray(z, dtype=np.float64)
+    r = np.full(z.shape, np.nan) if r is None else np.ascontiguousarray(r, dtype=np.float64)
+    return run(compiled, _wide_terrain_compiled, _wide_terrain_numpy, mask, z, r,
+               float(tolerance_m), float(max_slope))
+
+
+def _wide_terrain_numpy(mask, z, r, tolerance_m, max_slope):
+    """The numpy reference of :func:`wide_terrain_candidates` (r NaN: no slope test)."""
     m, n = z.shape
     padded = np.full((m, n + 2), np.nan)
     padded[:, 1:-1] = z
@@ -330,9 +343,56 @@ def wide_terrain_candidates(mask: np.ndarray, z: np.ndarray, tolerance_m: float,
             out &= close
         for k in (0, 2):  # a step up from its own segment's next candidates: an object
             out &= ~(padded[:, k:k + n] < z - tolerance_m)
-        if r is not None:
-            out &= ~(_slope_from_previous_candidate(z, r) > max_slope)
+        out &= ~(_slope_from_previous_candidate(z, r) > max_slope)
     return out
+
+
+def _wide_terrain_loop(mask, z, r, tolerance_m, max_slope):
+    """:func:`_wide_terrain_numpy` for the asked-for candidates only (compiled with numba;
+    the outlier pass asks for a handful): the same comparisons in the same float64
+    arithmetic, so the same mask."""
+    m_count, n_bins = z.shape
+    out = np.zeros((m_count, n_bins), dtype=np.bool_)
+    for m in range(m_count):
+        for b in range(n_bins):
+            if not mask[m, b]:
+                continue
+            height = z[m, b]
+            low = height - tolerance_m
+            keep = True
+            for side in (-1, 1):
+                row = (m + side) % m_count
+                close = False
+                for k in range(max(b - 1, 0), min(b + 2, n_bins)):
+                    other = z[row, k]
+                    if abs(other - height) <= tolerance_m:
+                        close = True
+                    if other < low:
+                        keep = False
+                if not close:
+                    keep = False
+            for k in (b - 1, b + 1):
+                if 0 <= k < n_bins and z[m, k] < low:
+                    keep = False
+            if keep and not np.isnan(height):
+                for k in range(b - 1, -1, -1):  # the previous candidate of the segment
+                    if not np.isnan(z[m, k]):
+                        rise = height - z[m, k]
+                        run_m = r[m, b] - r[m, k]
+                        if run_m != 0.0:
+                            slope = rise / run_m
+                        elif rise != 0.0:
+                            slope = math.copysign(math.inf, rise)
+                        else:
+                            slope = math.nan
+                        if slope > max_slope:
+                            keep = False
+                        break
+            out[m, b] = keep and not np.isnan(height)
+    return out
+
+
+_wide_terrain_compiled = kernel(_wide_terrain_loop)
 
 
 def _slope_from_previous_candidate(z: np.ndarray, r: np.ndarray) -> np.ndarray:

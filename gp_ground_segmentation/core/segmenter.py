@@ -548,6 +548,8 @@ class GroundSegmenter:
         gp = FrameGP(grid.candidate_r, grid.candidate_z, np.ones((2, 2)), grid.has_candidate,
                      backend='numba')
         self._reject_outliers(gp, gp.solve(np.ones(3)), np.zeros(gp.shape, dtype=bool))
+        additions.wide_terrain_candidates(grid.has_candidate, np.ones((2, 2)), 1.0,
+                                          r=np.ones((2, 2)), max_slope=1.0)
         compiled.run(True, _fill_rows_to_edges_compiled, _fill_rows_to_edges,
                      np.ones((2, 2)), grid.has_candidate, gp.segments)
         additions.cross_segment_rise(np.ones((2, 3)), np.ones((2, 3)), 1.0)
@@ -664,7 +666,8 @@ class GroundSegmenter:
             above = new & (gp.to_grid(gp.loo_residuals(sol), np.nan) > 0)
             new &= ~additions.wide_terrain_candidates(
                 above, gp.to_grid(gp.z, np.nan), p.outlier_wide_terrain_m,
-                r=gp.to_grid(gp.r, np.nan), max_slope=p.outlier_wide_terrain_max_slope)
+                r=gp.to_grid(gp.r, np.nan), max_slope=p.outlier_wide_terrain_max_slope,
+                compiled=gp.backend == 'numba')
         if not new.any():
             return gp, sol, outliers
         outliers = outliers | new

@@ -18,8 +18,8 @@ from std_msgs.msg import Header
 from builtin_interfaces.msg import Time
 
 from gp_ground_segmentation.ros.cloud import (
-    POINTFIELD_DTYPES, CloudFormatError, cloud_xyz, fields_dtype, make_cloud, point_rows,
-    read_cloud, subset_cloud, xyz_dtype)
+    POINTFIELD_DTYPES, CloudFormatError, cloud_xyz, fields_dtype, float32_cloud, make_cloud,
+    point_rows, read_cloud, subset_cloud, xyz_dtype)
 
 DATA = Path(__file__).resolve().parents[1].parent / 'shared' / 'data'
 STRUCT_CHARS = {1: 'b', 2: 'B', 3: 'h', 4: 'H', 5: 'i', 6: 'I', 7: 'f', 8: 'd'}
@@ -220,6 +220,29 @@ def test_empty_clouds():
 
 
 # --------------------------------------------------------------------------- make_cloud / subset
+
+@pytest.mark.parametrize('rows', [0, 1, 3000])
+@pytest.mark.parametrize('names', [('x', 'y', 'z', 'z_std'), ('x', 'y', 'z'), ('a', 'z')])
+def test_float32_cloud_is_make_cloud_of_the_structured_rows(rows, names):
+    """The surface cloud's builder gives make_cloud's message: header copied, fields, sizes,
+    bytes, is_dense (False with a NaN in x, y or z, or without all three)."""
+    rng = np.random.default_rng(rows)
+    values = rng.normal(size=(rows, len(names))).astype(np.float32)
+    header = Header(stamp=Time(sec=5, nanosec=6), frame_id='base')
+    cases = [values]
+    if rows:
+        nan = values.copy()
+        nan[rows // 2, len(names) - 1] = np.nan
+        cases.append(nan)
+    for case in cases:
+        packed = case.view([(n, np.float32) for n in names]).reshape(-1)
+        expected = make_cloud(header, packed)
+        msg = float32_cloud(header, case, names)
+        assert msg == expected and msg.header is not header
+        assert float32_cloud(header, case, names, PointCloud2) == expected
+    with pytest.raises(ValueError):
+        float32_cloud(header, values[:, :1], names)
+
 
 def test_make_cloud_round_trip_structured_with_padding():
     dt = np.dtype({'names': ['x', 'y', 'z', 'intensity', 'ring', 'rgb'],

@@ -499,7 +499,8 @@ def test_warm_up_queues_every_compiled_stage_a_frame_needs():
         for cloud in (points[:, :3].astype(np.float32), points[:, :3].astype(np.float64),
                       np.ascontiguousarray(points, dtype=np.float32)[:, :3]):
             seg.segment(cloud)
-            seg.segment(cloud)  # a warm frame too
+            # a warm frame too, and its surface cloud's rows (the node's ground_surface)
+            seg.segment(cloud).ground_surface.points()
         for kernel, signature in set(compiled._queued) - queued:
             print('MISSING', kernel.py_func.__name__, signature)
         """

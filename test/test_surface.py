@@ -105,6 +105,99 @@ def test_ground_offsets_leave_non_finite_residuals_to_the_reference():
     assert np.array_equal(compiled, reference, equal_nan=True)
 
 
+@pytest.mark.parametrize('seed', range(4))
+def test_ground_offsets_compiled_equals_the_reference_with_cells_in_runs(seed):
+    """Points grouped by cell, as a scan's come ring by ring (the kernel adds a run of one cell
+    in a register): still the reference's sums, bit for bit; runs of one cell that come back
+    later, single points between runs, a first run at cell 0 and one at the last cell."""
+    from gp_ground_segmentation.core import surface
+    rng = np.random.default_rng(seed)
+    m, n = 6, 5
+    runs = rng.integers(0, m * n, 300)
+    runs[0], runs[-1] = 0, m * n - 1
+    cells = np.repeat(runs, rng.integers(1, 30, runs.size))
+    z, z_hat, ground, _, _ = _offset_inputs(rng, cells.size, m, n,
+                                            (np.float32, np.float64)[seed % 2])
+    args = (z, z_hat, ground, (cells // n).astype(np.int32), (cells % n).astype(np.int32), m, n,
+            0.05)
+    compiled, reference = compiled_and_reference(surface.ground_offsets, *args)
+    assert np.array_equal(compiled, reference)
+
+
+def _surface_points(surface, supported_only, compiled):
+    return surface.points(supported_only, compiled=compiled)
+
+
+def _points_compiled_and_reference(surface, supported_only):
+    """(compiled, reference) points of ``surface``, checking that the kernel ran."""
+    from gp_ground_segmentation.core import surface as module
+    out = compiled_and_reference(_surface_points, surface, supported_only)
+    assert module._points_compiled.signatures, 'the points kernel never compiled'
+    return out
+
+
+def _assert_same_rows(compiled, reference):
+    assert compiled.dtype == reference.dtype == np.float32
+    assert compiled.shape == reference.shape and compiled.tobytes() == reference.tobytes()
+
+
+_POSES = [(0.0, 0.0, 0.0, 0.0, 0.0), (0.4, -0.3, 1.8, 0.0, 0.0), (0.4, -0.3, 1.8, 0.07, -0.12),
+          (0.0, 0.0, 0.0, -0.2, 0.0)]
+
+
+@pytest.mark.parametrize('pose', _POSES)
+@pytest.mark.parametrize('supported_only', [True, False])
+def test_surface_points_compiled_equal_the_numpy_reference_on_a_scan(ramp, pose, supported_only):
+    """The node's surface rows from the one-pass kernel are the reference's, byte for byte:
+    a real frame's surface (offsets, GP std, unsupported segments) under every kind of pose."""
+    from gp_ground_segmentation.core.sensor_frame import SensorPose
+    _, points, result = ramp
+    s = result.ground_surface
+    surface = GroundSurface(s._r_min, s._width, s._has_points, s._mean, s._segment_supported,
+                            s.gp_std, compute_offset=lambda: s.ground_offset,
+                            pose=SensorPose(*pose))
+    compiled, reference = _points_compiled_and_reference(surface, supported_only)
+    assert len(reference) > 1000
+    _assert_same_rows(compiled, reference)
+
+
+@pytest.mark.parametrize('seed', range(12))
+def test_surface_points_compiled_equal_the_numpy_reference_on_random_surfaces(seed):
+    """Random grids: NaN and absurd heights (rows not finite in float32 are left out), NaN and
+    infinite offsets (read as 0), unsupported and empty segments, NaN r_min, a single segment,
+    translated and tilted poses."""
+    from gp_ground_segmentation.core.sensor_frame import SensorPose
+    rng = np.random.default_rng(seed)
+    m, n = (1 if seed == 0 else int(rng.integers(2, 40))), int(rng.integers(1, 30))
+    r_min = rng.uniform(0.0, 20.0, m)
+    width = rng.uniform(0.01, 3.0, m)
+    mean = rng.normal(0.0, 1.0, (m, n + 1)) * rng.uniform(0.0, 3.0)
+    std = np.abs(rng.normal(0.0, 0.2, (m, n + 1)))
+    offset = rng.normal(0.0, 0.02, (m, n + 1))
+    if seed % 2:
+        mean[rng.random(mean.shape) < 0.05] = np.nan
+        mean[rng.random(mean.shape) < 0.03] = 1e39 * rng.choice([-1.0, 1.0])
+        offset[rng.random(offset.shape) < 0.05] = rng.choice([np.nan, np.inf])
+        std[rng.random(std.shape) < 0.03] = 1e40
+    if seed % 4 == 3:
+        r_min[rng.integers(0, m)] = np.nan
+    supported = rng.random(m) < 0.7
+    has_points = supported | (rng.random(m) < 0.5)
+    pose = SensorPose(*_POSES[seed % len(_POSES)])
+    surface = GroundSurface(r_min, width, has_points, mean, supported, std,
+                            compute_offset=lambda: offset, pose=pose)
+    for supported_only in (True, False):
+        _assert_same_rows(*_points_compiled_and_reference(surface, supported_only))
+
+
+def test_surface_points_of_an_empty_surface_are_the_reference():
+    surface = GroundSurface.empty(8, 4)
+    for supported_only in (True, False):
+        compiled, reference = _points_compiled_and_reference(surface, supported_only)
+        _assert_same_rows(compiled, reference)
+    assert compiled.shape == (0, 4)  # all NaN: nothing published
+
+
 @pytest.mark.parametrize('seed', range(3))
 def test_median_by_bucketing_is_numpys_median(seed):
     from gp_ground_segmentation.core import surface

@@ -250,7 +250,7 @@ def _ground_at_bin_edges(model: _GroundModel, edges: np.ndarray, need_std: bool)
 
 
 def _ground_surface(model: _GroundModel, grid: RadialGrid, edges, mean, std, z, ground, z_hat,
-                    k_star, pose, compiled_offsets: bool) -> GroundSurface:
+                    k_star, pose, compiled_surface: bool) -> GroundSurface:
     """The frame's GroundSurface; ``std`` None: its z_std is computed when first read.
     ``z``, ``ground`` and ``z_hat`` are the valid points' heights, labels and ground heights.
 
@@ -270,11 +270,12 @@ def _ground_surface(model: _GroundModel, grid: RadialGrid, edges, mean, std, z, 
 
     def compute_offset():
         return ground_offsets(z, z_hat, ground, point_segment, point_bin, m_count, n_bins,
-                              model.theta[2], compiled=compiled_offsets)
+                              model.theta[2], compiled=compiled_surface)
 
     return GroundSurface(grid.segment_r_min, grid.bin_width, grid.count.sum(axis=1) > 0, mean,
                          model.training.any(axis=1), std,
-                         compute_std if std is None else None, compute_offset, pose)
+                         compute_std if std is None else None, compute_offset, pose,
+                         compiled=compiled_surface)
 
 
 def _inner_edge_index(point_segment, point_bin, row_length) -> np.ndarray:
@@ -473,11 +474,11 @@ class GroundSegmenter:
         """Compile (or load from numba's cache) the GP step now, not inside the first frame, and
         have the stages with a bit-identical numpy twin (valid points, grid pass, line growing,
         plateau state machine, GP batch padding, outlier pass, length factors at the bin
-        edges, cross-segment rise, label pass, structure selection and look-ups, surface offsets)
-        compiled in the background (core/compiled.py; up to _BACKGROUND_WAIT_S is waited for
-        them, enough to load them from the cache, unless the GP step took longer than
-        _GP_CACHE_LOAD_MAX_S: then the cache was empty and they are compiling, which frames need
-        not wait for). See gp_compiled.py for where the cache lives.
+        edges, cross-segment rise, label pass, structure selection and look-ups, surface offsets
+        and rows) compiled in the background (core/compiled.py; up to _BACKGROUND_WAIT_S is
+        waited for them, enough to load them from the cache, unless the GP step took longer
+        than _GP_CACHE_LOAD_MAX_S: then the cache was empty and they are compiling, which
+        frames need not wait for). See gp_compiled.py for where the cache lives.
 
         The GP's posterior std at the bin edges is compiled now only when the labels use it
         (``ground_threshold_std_factor`` > 0); otherwise only the ground surface's z_std and
@@ -521,6 +522,9 @@ class GroundSegmenter:
                 z = np.ones(2, dtype=dtype)  # z_hat in the points' precision, as the labels
                 ground_offsets(z, z * 0, np.ones(2, bool), grid.point_segment, grid.point_bin,
                                2, 2, 0.1)
+            # the surface cloud's rows (GroundSurface.points), in float64 whatever the input
+            GroundSurface(np.zeros(2), np.ones(2), np.ones(2, bool), np.zeros((2, 3)),
+                          np.ones(2, bool), np.zeros((2, 3))).points()
             # These stages compile in the background (core/compiled.py); loading them from
             # numba's cache takes ~0.1 s, so wait that long, not the ~16-20 s of a first compile
             # (and not at all when the GP's compile showed the cache empty).

@@ -32,7 +32,8 @@ import copy
 import numpy as np
 
 __all__ = ['CloudFormatError', 'POINTFIELD_DTYPES', 'fields_dtype', 'read_cloud', 'cloud_xyz',
-           'xyz_dtype', 'point_rows', 'subset_cloud', 'make_cloud', 'with_float32_field']
+           'xyz_dtype', 'point_rows', 'subset_cloud', 'make_cloud', 'float32_cloud',
+           'with_float32_field']
 
 
 class CloudFormatError(ValueError):
@@ -359,6 +360,33 @@ def make_cloud(header, points, msg_type=None):
         msg.is_dense = all(bool(np.isfinite(pts[c]).all()) for c in ('x', 'y', 'z'))
     else:
         msg.is_dense = False
+    return msg
+
+
+def float32_cloud(header, values, names, msg_type=None):
+    """``make_cloud`` of (K, F) float32 ``values`` as the structured array of F little-endian
+    FLOAT32 fields ``names`` (one a column, in order, no padding): the same message, without
+    make_cloud's generic dtype checks and conversion (the node's ground surface cloud)."""
+    if msg_type is None:
+        from sensor_msgs.msg import PointCloud2 as msg_type
+    values = np.ascontiguousarray(values, dtype='<f4')
+    count = len(names)
+    if values.ndim != 2 or values.shape[1] != count:
+        raise ValueError(f'values of shape {values.shape} for {count} fields')
+    field_cls = _field_class(msg_type)
+    msg = msg_type()
+    if header is not None:
+        msg.header = _copy_header(header)
+    msg.height = 1
+    msg.width = int(values.shape[0])
+    msg.fields = [field_cls(name=n, offset=4 * i, datatype=FLOAT32, count=1)
+                  for i, n in enumerate(names)]
+    msg.is_bigendian = False
+    msg.point_step = 4 * count
+    msg.row_step = 4 * count * int(values.shape[0])
+    msg.data = _u8_array(values)
+    xyz = [i for i, n in enumerate(names) if n in ('x', 'y', 'z')]
+    msg.is_dense = len(xyz) == 3 and bool(np.isfinite(values[:, xyz]).all())
     return msg
 
 

@@ -25,7 +25,7 @@ Topics (relative names; remap e.g. ``-r points:=/velodyne_points``):
              at the bin edges
              of every segment with ground candidates, input header; only while
              ``publish_ground_surface`` is true, and built only while the topic has a
-             subscriber (lazy: it costs ~1.7 ms a frame on 124k points in the node).
+             subscriber (lazy: it costs ~1.4 ms a frame on 124k points in the node).
   /diagnostics (pub) diagnostic_msgs/DiagnosticArray, every diagnostics_period_s.
 Output QoS: a RELIABLE publisher matches both RELIABLE subscribers (RViz's and ros2 bag record's
 default) and BEST_EFFORT ones, whereas a BEST_EFFORT publisher is invisible to RELIABLE
@@ -350,7 +350,7 @@ class GroundSegmentationNode(Node):
             frame_id = msg.header.frame_id
             handoff_ms = (time.perf_counter() - received_at) * 1e3
             outputs = dict(self._outputs)
-            # Lazy, as image_transport's publishers: the surface cloud costs ~1.7 ms per frame
+            # Lazy, as image_transport's publishers: the surface cloud costs ~1.4 ms per frame
             # on 124k points (bench_node.py), spent only while someone subscribes to it, and
             # after ground and obstacles are published (add_surface below).
             surface_wanted = (outputs.pop('publish_ground_surface')

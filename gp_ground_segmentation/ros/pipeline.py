@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .cloud import cloud_xyz, make_cloud, read_cloud, subset_cloud, with_float32_field
+from .cloud import cloud_xyz, float32_cloud, read_cloud, subset_cloud, with_float32_field
 from ..core.segmenter import SegmentationResult
 from ..core.sensor_frame import cloud_notes
 
@@ -87,8 +87,7 @@ def surface_cloud(header, surface, msg_type=None):
     """PointCloud2 (x, y, z, z_std FLOAT32, ``header`` copied) of a GroundSurface's supported
     prediction points."""
     values = surface.points(supported_only=True)  # (K, 4) float32, C order: x, y, z, z_std
-    packed = values.view([(name, np.float32) for name in SURFACE_FIELDS]).reshape(-1)
-    return make_cloud(header, packed, msg_type)
+    return float32_cloud(header, values, SURFACE_FIELDS, msg_type)
 
 
 def process_cloud(msg, segmenter, *, publish_ground_surface: bool = False,

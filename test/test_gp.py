@@ -686,3 +686,36 @@ def test_a_failed_std_kernel_is_remembered_not_compiled_again(monkeypatch):
         assert calls == [1] and compiled.failed(broken)
     finally:  # the set of failed kernels is the process's: other tests check it is empty
         compiled._failed.discard(broken)
+
+
+@pytest.mark.parametrize('with_anchor', [False, True])
+def test_compiled_slot_noise_equals_the_numpy_reference(with_anchor):
+    """with_noise's slots: the compiled pass gives the reference's (S, n) noise (the anchor's
+    own, padding 0) and the segments whose noise changed; a compiled copy solves as a numpy
+    copy does."""
+    from gp_ground_segmentation.core import gp as module
+    if module._slot_noise_compiled is None:
+        pytest.skip('numba not installed')
+    rng = np.random.default_rng(3)
+    m_count, n_bins = 20, 10
+    r = np.sort(rng.uniform(1.0, 30.0, (m_count, n_bins)), axis=1)
+    z = rng.normal(0.0, 0.2, (m_count, n_bins))
+    d = rng.uniform(0.3, 3.0, (m_count, n_bins))
+    mask = rng.random((m_count, n_bins)) < 0.6
+    mask[:2] = False
+    anchor = (GroundAnchor(0.0, 0.01, rng.random(m_count) < 0.8, rng.uniform(0.3, 3.0, m_count))
+              if with_anchor else None)
+    gp = FrameGP(r, z, d, mask, anchor=anchor, backend='numba')
+    noise = np.where(mask & (rng.random(mask.shape) < 0.2), 1e4, 0.0)
+    anchor_var = 0.01 if with_anchor else 0.0
+    args = (noise, gp.noise_var, gp.valid, gp.is_anchor, gp.segments, gp.bins, anchor_var)
+    ours = module._slot_noise_compiled(*args)
+    reference = gp._slot_noise(*args)
+    for a, b in zip(ours, reference):
+        np.testing.assert_array_equal(a, b)
+    assert 0 < np.count_nonzero(reference[1]) < gp.segments.size
+    theta = np.array([0.5, 2.0, 0.1])
+    gp.solve(theta)
+    numpy_gp = FrameGP(r, z, d, mask, anchor=anchor, backend='numpy')
+    np.testing.assert_array_equal(gp.with_noise(noise).noise_var,
+                                  numpy_gp.with_noise(noise).noise_var)

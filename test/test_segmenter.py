@@ -477,6 +477,106 @@ def test_compiled_outlier_pass_equals_the_numpy_reference(seed, worst_above_only
     assert counts[1] <= counts[0] if worst_above_only else counts[1] < counts[0]
 
 
+@pytest.mark.parametrize('seed', range(40))
+def test_compiled_length_factors_equal_the_numpy_reference(seed):
+    """d_i of every bin: the compiled passes with numpy's log and exp between them give the
+    reference's values (relative_density, length_scale_factors, smooth_length_factors) bit
+    for bit: empty bins, NaN and infinite slopes, zero density, r = 0, both flat branches,
+    0 to 5 smoothing passes, a grid without a usable bin; each pass equals its numpy twin."""
+    from gp_ground_segmentation.core import compiled
+    from gp_ground_segmentation.core import segmenter as module
+    if not compiled.AVAILABLE:
+        pytest.skip('numba not installed')
+    rng = np.random.default_rng(seed)
+    m_count, n_bins = int(rng.integers(1, 130)), int(rng.integers(1, 40))
+    shape = (m_count, n_bins)
+    slope = np.where(rng.random(shape) < 0.3, np.nan, rng.uniform(-3.0, 3.0, shape))
+    slope[rng.random(shape) < 0.05] = np.inf
+    density = np.where(rng.random(shape) < 0.2, 0.0, np.exp(rng.uniform(-5.0, 8.0, shape)))
+    candidate_r = np.where(rng.random(shape) < 0.2, np.nan, rng.uniform(0.0, 80.0, shape))
+    candidate_r[rng.random(shape) < 0.02] = 0.0
+    training = rng.random(shape) < (0.0 if seed == 0 else rng.uniform(0.0, 1.0))
+    args = (slope, density, candidate_r, training, 0.02, 0.9, bool(seed % 2), 0.05, 50.0,
+            int(rng.integers(0, 6)))
+    module._length_factors_fused(*args)  # queues the passes' compilation
+    assert compiled.wait(120.0)
+    passes = (module._usable_bins_compiled, module._ring_deviation_compiled,
+              module._raw_length_factors_compiled, module._smooth_compiled)
+    assert not any(compiled.failed(k) for k in passes)  # else the twins ran: proves nothing
+    np.testing.assert_array_equal(module._length_factors_fused(*args),
+                                  module._length_factors_numpy(*args))
+    pass_args = (density, candidate_r, training, slope, 0.02, 0.9)
+    for ours, twin in zip(module._usable_bins_compiled(*pass_args),
+                          module._usable_bins_reference(*pass_args)):
+        np.testing.assert_array_equal(ours, twin)
+    usable, r_usable, rho_usable = module._usable_bins_reference(*pass_args)[:3]
+    logs = (np.log(r_usable), np.log(rho_usable), float(np.log(1.15)))
+    np.testing.assert_array_equal(module._ring_deviation_compiled(*logs),
+                                  module._ring_deviation_reference(*logs))
+
+
+@pytest.mark.parametrize('seed', range(6))
+def test_compiled_wide_terrain_of_an_outlier_pass_equals_the_numpy_reference(seed):
+    """The wide-terrain rule inside the outlier pass: the compiled pass over the GP's slots
+    (residual, z and r grids, then the wide-terrain loop) removes from ``new`` the same
+    candidates as the reference (FrameGP.to_grid and additions.wide_terrain_candidates)."""
+    from gp_ground_segmentation.core import additions
+    from gp_ground_segmentation.core import segmenter as module
+    from gp_ground_segmentation.core.gp import FrameGP, GroundAnchor
+    if module._not_wide_terrain_compiled is None:
+        pytest.skip('numba not installed')
+    rng = np.random.default_rng(seed)
+    m_count, n_bins = 30, 12
+    r = np.sort(rng.uniform(1.0, 40.0, (m_count, n_bins)), axis=1)
+    # terraces continued by the neighbouring segments, and spikes that are not
+    z = (np.round(r / 10.0) * 0.4 + rng.normal(0.0, 0.05, (m_count, n_bins))
+         + rng.choice([0.0, 1.5], (m_count, n_bins), p=[0.9, 0.1]))
+    d = rng.uniform(0.3, 3.0, (m_count, n_bins))
+    mask = rng.random((m_count, n_bins)) < 0.7
+    anchor = GroundAnchor(0.0, 0.01, rng.random(m_count) < 0.8, rng.uniform(0.3, 3.0, m_count))
+    gp = FrameGP(r, z, d, mask, anchor=anchor, backend='numba')
+    sol = gp.solve(np.array([0.5, 2.0, 0.1]))
+    new = mask & (rng.random(mask.shape) < 0.4)
+    kept = []
+    for tolerance, max_slope in ((0.3, 0.3), (1.0, np.inf), (0.05, 1.0)):
+        ours = module._not_wide_terrain_compiled(new, sol.alpha, sol.a_inv, gp.valid,
+                                                 gp.is_anchor, gp.segments, gp.bins, gp.r,
+                                                 gp.z, tolerance, max_slope)
+        above = new & (gp.to_grid(gp.loo_residuals(sol), np.nan) > 0)
+        reference = new & ~additions.wide_terrain_candidates(
+            above, gp.to_grid(gp.z, np.nan), tolerance, r=gp.to_grid(gp.r, np.nan),
+            max_slope=max_slope, compiled=False)
+        np.testing.assert_array_equal(ours, reference)
+        kept.append(np.count_nonzero(reference))
+    assert min(kept) < np.count_nonzero(new)  # some candidates are terrain
+
+
+@pytest.mark.parametrize('seed', range(6))
+def test_compiled_training_mask_and_anchor_rows_equal_the_numpy_reference(seed):
+    """Candidates not on steep lines (with the counts) and the anchor's rows and length
+    factors: the compiled passes give their numpy references' values."""
+    from gp_ground_segmentation.core import compiled
+    from gp_ground_segmentation.core import segmenter as module
+    if not compiled.AVAILABLE:
+        pytest.skip('numba not installed')
+    rng = np.random.default_rng(seed)
+    shape = (int(rng.integers(1, 130)), int(rng.integers(1, 40)))
+    candidate_index = np.where(rng.random(shape) < 0.3, -1,
+                               rng.integers(0, 1000, shape)).astype(np.intp)
+    candidate_index[:2] = -1  # rows without a candidate
+    slope = np.where(rng.random(shape) < 0.3, np.nan, rng.uniform(0.0, 3.0, shape))
+    slope[rng.random(shape) < 0.05] = np.inf
+    ours = module._not_steep_compiled(candidate_index, slope, 0.7)
+    reference = module._not_steep(candidate_index, slope, 0.7)
+    np.testing.assert_array_equal(ours[0], reference[0])
+    assert ours[1:] == tuple(int(v) for v in reference[1:])
+    d = rng.uniform(0.05, 50.0, shape)
+    for training in (reference[0], np.zeros(shape, dtype=bool)):
+        for a, b in zip(module._anchor_rows_compiled(candidate_index, d, training),
+                        module._anchor_rows(candidate_index, d, training)):
+            np.testing.assert_array_equal(a, b)
+
+
 def test_warm_up_queues_every_compiled_stage_a_frame_needs():
     """After warm_up(), frames of either precision and layout ask numba for no signature it
     has not queued (a missed one compiles, or loads, only once a frame needs it: seconds of

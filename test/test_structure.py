@@ -211,3 +211,42 @@ def test_compiled_selection_equals_the_numpy_reference(dtype):
         assert a.dtype == b.dtype
         np.testing.assert_array_equal(a, b)
     assert 0 < reference[0].size < reference[3].size < n_points
+
+
+@pytest.mark.parametrize('dtype', [np.float32, np.float64])
+def test_compiled_cells_equal_their_numpy_twins(dtype):
+    """The compiled path's two passes (selection with the cells, then far rings, table and
+    look-ups) give their numpy twins' outputs, near and far points, and the same mask as the
+    numpy path of vertical_structure_mask."""
+    from gp_ground_segmentation.core import structure
+    if structure._cells_hits_compiled is None:
+        pytest.skip('numba not installed')
+    rng = np.random.default_rng(5)
+    n_points = 6000
+    r = rng.uniform(0.5, 130.0, n_points).astype(dtype)
+    angle = rng.uniform(-np.pi, np.pi, n_points)
+    angle[:5] = np.pi  # the last azimuth cell's edge
+    ground_z = np.zeros(n_points, dtype)
+    z = rng.choice(np.array([0.0, 0.05, 0.3, 0.6], dtype), n_points)
+    candidate = z < 0.1
+    cell_rad = np.radians(KW['cell_deg'])
+    n_az = int(np.ceil(2.0 * np.pi / cell_rad))
+    r_square = KW['cell_m'] / cell_rad
+    select = (angle, z, ground_z, candidate, r, dtype(0.2), dtype(0.7), dtype(115.0), n_az,
+              n_az / (2.0 * np.pi), 1.0 / KW['cell_m'], r_square, 1.0 / r_square)
+    ours = structure._select_cells_compiled(*select)
+    twin = structure._select_cells_numpy(*select)
+    for a, b in zip(ours, twin):
+        np.testing.assert_array_equal(a, b)
+    far_index, n_far_col, far_ratio = twin[7:]
+    assert 0 < n_far_col < far_index.size < n_points
+    hits = (n_points, *twin[:7], far_index, n_far_col, np.log(far_ratio), r_square / KW['cell_m'],
+            1.0 / cell_rad, n_az, dtype(KW['step_m']))
+    reference = structure._cells_hits_numpy(*hits)
+    np.testing.assert_array_equal(structure._cells_hits_compiled(*hits), reference)
+    assert 0 < np.count_nonzero(reference) < np.count_nonzero(candidate)
+    x, y = (r * np.cos(angle)).astype(dtype), (r * np.sin(angle)).astype(dtype)
+    kw = dict(KW, r=r, angle=angle)
+    np.testing.assert_array_equal(
+        vertical_structure_mask(x, y, z, ground_z, candidate, **kw),
+        vertical_structure_mask(x, y, z, ground_z, candidate, **kw, compiled=False))

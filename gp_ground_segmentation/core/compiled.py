@@ -94,6 +94,12 @@ def mark_failed(compiled_kernel) -> None:
     _failed.add(compiled_kernel)
 
 
+# The array flags numba's type depends on (C, F contiguous, aligned, writeable: layout,
+# alignment, readonly); numpy's flag bits, read as one integer (ndarray.flags.num)
+_LAYOUT_FLAGS = 0x0001 | 0x0002 | 0x0100 | 0x0400
+_SCALAR_TYPES = (float, bool, np.floating, np.integer, np.bool_)
+
+
 def _argument_key(args):
     """What decides numba's type of each argument (arrays: dtype, ndim, layout, writeable,
     aligned; scalars: their Python or numpy type), cheap to make; None for other arguments.
@@ -102,14 +108,19 @@ def _argument_key(args):
     coarser, so one key stands for one compiled signature."""
     key = []
     for a in args:
-        if isinstance(a, np.ndarray):
-            flags = a.flags
-            key.append((a.dtype, a.ndim, flags.c_contiguous, flags.f_contiguous,
-                        flags.writeable, flags.aligned))
-        elif isinstance(a, (float, bool, np.floating, np.integer, np.bool_)):
-            key.append(type(a))
-        elif isinstance(a, int) and _INT64_MIN <= a <= _INT64_MAX:  # numba: int64
+        kind = type(a)
+        if kind is np.ndarray:  # the common case first: ~0.15 us, not ~0.3 us, an array
+            key.append((a.dtype, a.ndim, a.flags.num & _LAYOUT_FLAGS))
+        elif kind is float or kind is bool:
+            key.append(kind)
+        elif kind is int:
+            if not _INT64_MIN <= a <= _INT64_MAX:  # numba: uint64 or object
+                return None
             key.append(int)
+        elif isinstance(a, np.ndarray):  # a subclass: its type is part of the key
+            key.append((kind, a.dtype, a.ndim, a.flags.num & _LAYOUT_FLAGS))
+        elif isinstance(a, _SCALAR_TYPES):
+            key.append(kind)
         else:
             return None
     return tuple(key)

@@ -302,6 +302,24 @@ def _posterior_std(k_star, a_inv, sigma_f) -> np.ndarray:
     return np.sqrt(np.maximum(sigma_f * sigma_f - reduce, 0.0))  # clamp round-off
 
 
+def _is_plain_float64(a) -> bool:
+    """A C-contiguous, writable, aligned float64 ndarray (what the compiled prediction is
+    compiled for), as numpy flags say it."""
+    return (type(a) is np.ndarray and a.dtype == np.float64
+            and a.flags.num & 0x0501 == 0x0501)  # C-contiguous, aligned, writeable
+
+
+def _prediction_points(r_star, d_star, s_count: int):
+    """(r*, d*) as (S, k) float64 arrays for the compiled prediction: as given when both are
+    that already (the segmenter's), else broadcast copies (a read-only array or another layout
+    is another numba signature to load). The kernel only reads them."""
+    if (_is_plain_float64(r_star) and _is_plain_float64(d_star) and r_star.ndim == 2
+            and r_star.shape == d_star.shape and r_star.shape[0] == s_count):
+        return r_star, d_star
+    shape = np.broadcast_shapes(np.shape(r_star), np.shape(d_star), (s_count, 1))
+    return tuple(np.broadcast_to(a, shape).astype(np.float64) for a in (r_star, d_star))
+
+
 @dataclass
 class GPSolution:
     """Factorisation of A = K + sigma_n^2 I for every segment at one theta."""
@@ -425,6 +443,32 @@ def _pad_loop(r, z, d, mask, noise_var, has_anchor, anchor_segments, anchor_d, a
 _pad_compiled = kernel(_pad_loop)
 
 
+def _slot_noise_loop(noise_var, old_noise_var, valid, is_anchor, segments, bins, anchor_var):
+    """(S, n) noise variance of the batch's slots from the (M, N) ``noise_var`` of the grid
+    candidates (the anchor's slots ``anchor_var``, padding 0), and (S,) whether a segment's
+    differ from ``old_noise_var`` (compiled with numba; ``FrameGP.with_noise``): the same
+    values as its numpy reference, in one pass."""
+    s_count, n_slots = valid.shape
+    slot_noise = np.empty((s_count, n_slots))
+    changed = np.zeros(s_count, dtype=np.bool_)
+    for s in range(s_count):
+        m = segments[s]
+        for i in range(n_slots):
+            if is_anchor[s, i]:
+                value = anchor_var
+            elif valid[s, i]:
+                value = noise_var[m, bins[s, i]]
+            else:
+                value = 0.0
+            slot_noise[s, i] = value
+            if value != old_noise_var[s, i]:
+                changed[s] = True
+    return slot_noise, changed
+
+
+_slot_noise_compiled = kernel(_slot_noise_loop)
+
+
 class FrameGP:
     """Training data of one frame, padded to (S, n) over the segments that have training points.
 
@@ -503,20 +547,28 @@ class FrameGP:
         if self.backend == 'numpy':
             self._pair_geometry()  # made once here, shared by the copy
         other = copy.copy(self)
-        anchor_var = self.anchor.noise_var if self.anchor is not None else 0.0
-        keep, grid_index = self._grid_slots()  # the grid candidates' slots; padding gets 0
-        other.noise_var = np.where(self.is_anchor, anchor_var, 0.0)
-        other.noise_var[keep] = np.asarray(noise_var, dtype=np.float64).reshape(-1)[grid_index]
+        anchor_var = float(self.anchor.noise_var) if self.anchor is not None else 0.0
+        # the grid candidates' slots get ``noise_var``, the anchor's its own, padding 0; and
+        # the segments whose noise changed
+        other.noise_var, changed = run(
+            self.backend == 'numba', _slot_noise_compiled, self._slot_noise,
+            np.ascontiguousarray(noise_var, dtype=np.float64).reshape(self.shape),
+            self.noise_var, self.valid, self.is_anchor, self.segments, self.bins, anchor_var)
         other._cache = []  # cholesky_fallbacks carries on: it counts the whole chain
         other.factorisations = 0
         # this object's cached solutions stay valid for the copy's segments whose noise is
         # unchanged: a solve at their theta recomputes only the others (bit for bit the same)
         compiled_solutions = [(key, sol) for key, sol in self._cache if sol.logdets is not None]
-        other._known = None
-        if compiled_solutions:
-            other._known = (compiled_solutions,
-                            np.any(other.noise_var != self.noise_var, axis=1))
+        other._known = (compiled_solutions, changed) if compiled_solutions else None
         return other
+
+    def _slot_noise(self, noise_var, old_noise_var, valid, is_anchor, segments, bins,
+                    anchor_var):
+        """The numpy reference of :func:`_slot_noise_loop` (``with_noise``'s slots)."""
+        keep, grid_index = self._grid_slots()
+        slot_noise = np.where(is_anchor, anchor_var, 0.0)
+        slot_noise[keep] = noise_var.reshape(-1)[grid_index]
+        return slot_noise, np.any(slot_noise != old_noise_var, axis=1)
 
     def to_grid(self, slot_values, fill) -> np.ndarray:
         """(S, n) values of the training slots -> (M, N) over the grid's bins (anchor dropped)."""
@@ -648,8 +700,13 @@ class FrameGP:
         The cap is on objective evaluations (each one factorisation of the whole frame), the
         unit of cost; L-BFGS-B's own iteration count is reported in ``info``.
         """
-        theta0 = np.clip(np.asarray(theta0, dtype=np.float64), [b[0] for b in bounds],
-                         [b[1] for b in bounds])
+        theta0 = np.asarray(theta0, dtype=np.float64)
+        if theta0.shape == (len(bounds),):  # np.clip's values without its ~5 us of set-up
+            theta0 = np.array([min(max(t, lo), hi)  # NaN stays NaN, as in np.clip
+                               for t, (lo, hi) in zip(theta0.tolist(), bounds)],
+                              dtype=np.float64)
+        else:
+            theta0 = np.clip(theta0, [b[0] for b in bounds], [b[1] for b in bounds])
         info = {'iterations': 0, 'evaluations': 0, 'failed': False}
         if max_evaluations <= 0 or self.num_points == 0:
             return theta0, info
@@ -714,11 +771,7 @@ class FrameGP:
         """
         sigma_f, gain, _ = sol.theta
         if self.backend == 'numba' and sol.gradient is not None:  # a compiled solution
-            shape = np.broadcast_shapes(np.shape(r_star), np.shape(d_star),
-                                        (self.segments.size, 1))
-            # fresh writable copies: a read-only array is another numba signature to load
-            r_star, d_star = (np.broadcast_to(a, shape).astype(np.float64)
-                              for a in (r_star, d_star))
+            r_star, d_star = _prediction_points(r_star, d_star, self.segments.size)
             try:
                 mean, std, k_star = gp_compiled.predict_batched(
                     self.r, self.d, self.counts, sol.alpha, sol.a_inv, r_star, d_star,

@@ -251,8 +251,8 @@ def _predict_into(r, d, counts, alpha, r_star, d_star, sigma_f, gain, mean, k_st
     """The loops of :func:`predict_batched` (compiled), into ``mean`` (S, k) and ``k_star``
     (S, n, k), neither initialised."""
     s_count, k_count = r_star.shape
-    for s in range(s_count):  # padded slots stay 0
-        for j in range(k_star.shape[1]):
+    for s in range(s_count):  # padded slots are 0 (the others are written below)
+        for j in range(counts[s], k_star.shape[1]):
             for c in range(k_count):
                 k_star[s, j, c] = 0.0
     sf2 = sigma_f * sigma_f

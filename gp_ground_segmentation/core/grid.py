@@ -268,8 +268,11 @@ def build_grid(x: np.ndarray, y: np.ndarray, z: np.ndarray, num_segments: int,
                       cand_r.reshape(shape), cand_z.reshape(shape), density.reshape(shape))
 
 
+RING_RATIO = 1.15  # relative_density's range rings: r within this factor
+
+
 def relative_density(density: np.ndarray, candidate_r: np.ndarray, mask: np.ndarray,
-                     ring_ratio: float = 1.15) -> np.ndarray:
+                     ring_ratio: float = RING_RATIO) -> np.ndarray:
     """rho~ divided by its typical value at the same range; 1 = an ordinary bin at that range.
 
     A spinning LiDAR's point density falls roughly as 1/r^2 to 1/r^3, so raw rho~ mostly encodes

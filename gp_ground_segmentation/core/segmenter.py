@@ -65,7 +65,8 @@ Choices where the paper is vague, each a parameter (see params.py):
 
 from __future__ import annotations
 
-import dataclasses
+import contextlib
+import copy
 import time
 from dataclasses import dataclass, field
 from typing import NamedTuple, Optional
@@ -76,7 +77,7 @@ from threadpoolctl import ThreadpoolController
 from . import additions
 from . import compiled, gp_compiled
 from .gp import FrameGP, GPSolution, GroundAnchor, length_scale_factors, resolve_backend
-from .grid import RadialGrid, build_grid, relative_density
+from .grid import RING_RATIO, RadialGrid, build_grid, relative_density
 from .lines import LineSegments, extract_lines
 from .params import SegmenterParams
 from .sensor_frame import ground_height_in_cloud_frame, to_levelled_frame
@@ -100,6 +101,9 @@ def _single_threaded_blas():
     The GP factorises many tiny (n <= N + 1) matrices; OpenBLAS threads only spin on them.
     Measured on the 124k-point KITTI frame: the same wall time, half the CPU time (31 vs 62 ms
     per frame), which leaves the other core to the ROS executor (benchmarks/RESULTS.md).
+    Only the numpy GP needs it: the compiled one calls no BLAS (``segment`` skips the ~10 us
+    of setting and restoring the limit then; a frame whose kernel fails half-way finishes its
+    numpy GP without the limit, the same numbers).
     """
     global _blas
     if _blas is None:
@@ -190,26 +194,25 @@ def _valid_columns(xyz: np.ndarray):
 
 
 def _valid_columns_loop(xyz):
-    """:func:`_valid_columns` in two passes over the points (compiled with numba): the same
-    tests (finite, not (0, 0, 0)) and the same copies, without the reference's six masks."""
+    """:func:`_valid_columns` in one pass over the points (compiled with numba): the same
+    tests (finite, not (0, 0, 0)) and the same values, without the reference's six masks.
+    Every point is copied to the next free slot, which advances only past a valid one (no
+    branch; ~25 % less time than a counting pass and a copying pass); the columns are the
+    first slots of arrays of all the points' length."""
     n_points = xyz.shape[0]
     valid = np.empty(n_points, dtype=np.bool_)
-    n_valid = 0
+    x = np.empty(n_points, dtype=xyz.dtype)
+    y = np.empty(n_points, dtype=xyz.dtype)
+    z = np.empty(n_points, dtype=xyz.dtype)
+    k = 0
     for i in range(n_points):
         px, py, pz = xyz[i, 0], xyz[i, 1], xyz[i, 2]
         ok = (np.isfinite(px) and np.isfinite(py) and np.isfinite(pz)
               and not (px == 0 and py == 0 and pz == 0))
         valid[i] = ok
-        n_valid += ok
-    x = np.empty(n_valid, dtype=xyz.dtype)
-    y = np.empty(n_valid, dtype=xyz.dtype)
-    z = np.empty(n_valid, dtype=xyz.dtype)
-    k = 0
-    for i in range(n_points):
-        if valid[i]:
-            x[k], y[k], z[k] = xyz[i, 0], xyz[i, 1], xyz[i, 2]
-            k += 1
-    return valid, x, y, z
+        x[k], y[k], z[k] = px, py, pz
+        k += ok
+    return valid, x[:k], y[:k], z[:k]
 
 
 _valid_columns_compiled = compiled.kernel(_valid_columns_loop)
@@ -232,10 +235,11 @@ def _ground_at_bin_edges(model: _GroundModel, edges: np.ndarray, need_std: bool)
 
     Segments outside the GP batch keep ``model.default_height`` and the prior std sigma_f.
     Returns (mean, std, d at the edges of the GP's segments, k* there) with (M, N + 1) mean
-    and std; k* (``FrameGP.predict``'s kernel) is None unless the compiled backend ran.
+    and std (None unless ``need_std``); k* (``FrameGP.predict``'s kernel) is None unless the
+    compiled backend ran.
     """
     mean = np.full(edges.shape, model.default_height)
-    std = np.full(edges.shape, model.theta[0])
+    std = np.full(edges.shape, model.theta[0]) if need_std else None  # None: not asked for
     d_star = k_star = None
     if model.solution is not None:
         rows = model.gp.segments
@@ -425,6 +429,266 @@ def _new_outliers_loop(alpha, a_inv, valid, is_anchor, segments, bins, outliers,
 _new_outliers_compiled = compiled.kernel(_new_outliers_loop)
 
 
+def _not_wide_terrain_loop(new, alpha, a_inv, valid, is_anchor, segments, bins, r, z,
+                           tolerance_m, max_slope):
+    """``new`` (M, N) without the candidates that ``additions.wide_terrain_candidates`` calls
+    terrain among those with a leave-one-out residual above 0 (compiled with numba): the
+    grids of residual, z and r that the reference (in ``_reject_outliers``) makes with
+    ``FrameGP.to_grid`` (NaN where no grid candidate trains), filled from the GP's slots in
+    one pass, and the compiled wide-terrain pass on them; the same values, so the same mask.
+    """
+    m_count, n_bins = new.shape
+    above = np.zeros((m_count, n_bins), dtype=np.bool_)
+    z_grid = np.full((m_count, n_bins), np.nan)
+    r_grid = np.full((m_count, n_bins), np.nan)
+    for s in range(segments.size):
+        m = segments[s]
+        for i in range(valid.shape[1]):
+            if valid[s, i] and not is_anchor[s, i]:
+                b = bins[s, i]
+                z_grid[m, b] = z[s, i]
+                r_grid[m, b] = r[s, i]
+                above[m, b] = new[m, b] and alpha[s, i] / a_inv[s, i, i] > 0
+    wide = additions._wide_terrain_compiled(above, z_grid, r_grid, tolerance_m, max_slope)
+    out = np.empty((m_count, n_bins), dtype=np.bool_)
+    for m in range(m_count):
+        for b in range(n_bins):
+            out[m, b] = new[m, b] and not wide[m, b]
+    return out
+
+
+_not_wide_terrain_compiled = None
+if compiled.AVAILABLE:  # the pass calls the compiled wide-terrain loop
+    _not_wide_terrain_compiled = compiled.kernel(_not_wide_terrain_loop)
+
+
+def _length_factors_numpy(slope, density, candidate_r, training, slope_floor, slope_ceiling,
+                          density_in_flat_branch, d_min, d_max, passes):
+    """d_i of every candidate (stage ``gp_fit``): ``grid.relative_density``, then
+    ``gp.length_scale_factors``, then ``additions.smooth_length_factors`` (the numpy reference
+    of :func:`_length_factors_fused`)."""
+    d = length_scale_factors(slope, relative_density(density, candidate_r, training),
+                             slope_floor=slope_floor, slope_ceiling=slope_ceiling,
+                             density_in_flat_branch=density_in_flat_branch, d_min=d_min,
+                             d_max=d_max)
+    return additions.smooth_length_factors(d, training, passes, compiled=False)
+
+
+def _length_factors_fused(slope, density, candidate_r, training, slope_floor, slope_ceiling,
+                          density_in_flat_branch, d_min, d_max, passes):
+    """:func:`_length_factors_numpy` with its arithmetic in compiled passes and only its
+    logarithms and exponentials left to numpy, on the arrays the reference takes them of
+    (numpy's SIMD log and exp differ from numba's in the last bit; an element's value does not
+    depend on the array around it): ~10 numpy calls instead of ~35. While a pass is not
+    compiled, its numpy twin runs (the same values)."""
+    training = np.ascontiguousarray(training, dtype=bool)
+    # as relative_density and length_scale_factors compute these constants
+    log_ratio, log_flat = float(np.log(RING_RATIO)), float(np.log(1.0 / slope_floor))
+    usable, r_usable, rho_usable, inverse_slope, flat = compiled.run(
+        True, _usable_bins_compiled, _usable_bins_reference, density, candidate_r, training,
+        slope, float(slope_floor), float(slope_ceiling))
+    # rho~ over its ring's geometric mean, of the usable bins (relative_density)
+    log_rho = np.log(rho_usable)
+    density_rel = np.exp(compiled.run(True, _ring_deviation_compiled, _ring_deviation_reference,
+                                      np.log(r_usable), log_rho, log_ratio))
+    d, smoothing_input = compiled.run(
+        True, _raw_length_factors_compiled, _raw_length_factors_reference, np.log(inverse_slope),
+        density_rel, usable, flat, training, bool(density_in_flat_branch), log_flat,
+        float(d_min), float(d_max))
+    if passes <= 0:
+        return d
+    log_d = compiled.run(True, _smooth_compiled, additions._smooth_numpy,
+                         np.log(smoothing_input), training, int(passes))
+    return np.where(training, np.exp(log_d), d)
+
+
+def _usable_bins_loop(density, candidate_r, training, slope, slope_floor, slope_ceiling):
+    """The bins ``relative_density`` uses and, of every bin, the slope part of
+    ``length_scale_factors`` (compiled with numba): (usable (M, N), their r and rho~ in row
+    order (as a boolean index gathers them), 1 / g, whether the slope is below the floor)."""
+    m_count, n_count = density.shape
+    usable = np.empty((m_count, n_count), dtype=np.bool_)
+    r_usable = np.empty(m_count * n_count)
+    rho_usable = np.empty(m_count * n_count)
+    inverse_slope = np.empty((m_count, n_count))
+    flat = np.empty((m_count, n_count), dtype=np.bool_)
+    count = 0
+    for m in range(m_count):
+        for k in range(n_count):
+            r = candidate_r[m, k]
+            ok = training[m, k] and density[m, k] > 0 and np.isfinite(r) and r > 0
+            usable[m, k] = ok
+            if ok:
+                r_usable[count] = r
+                rho_usable[count] = density[m, k]
+                count += 1
+            g = slope[m, k]
+            raw = 0.0 if np.isnan(g) else np.abs(g)  # no slope = flat; +inf = steep
+            flat[m, k] = raw < slope_floor
+            inverse_slope[m, k] = 1.0 / min(max(raw, slope_floor), slope_ceiling)
+    return usable, r_usable[:count], rho_usable[:count], inverse_slope, flat
+
+
+def _usable_bins_reference(density, candidate_r, training, slope, slope_floor, slope_ceiling):
+    """numpy twin of :func:`_usable_bins_loop` (run only while the pass compiles)."""
+    usable = training & (density > 0) & np.isfinite(candidate_r) & (candidate_r > 0)
+    raw = np.where(np.isnan(slope), 0.0, np.abs(slope))
+    return (usable, candidate_r[usable], density[usable],
+            1.0 / np.minimum(np.maximum(raw, slope_floor), slope_ceiling), raw < slope_floor)
+
+
+def _ring_deviation_loop(log_r, log_rho, log_ratio):
+    """log rho~ minus the mean of its range ring (``relative_density``; compiled with numba),
+    the ring sums accumulated in the order np.bincount sums them."""
+    count = log_r.size
+    deviation = np.empty(count)
+    if count == 0:
+        return deviation
+    ring = np.empty(count, dtype=np.intp)
+    ring_min = 0
+    for i in range(count):
+        ring[i] = np.intp(np.floor(log_r[i] / log_ratio))
+        if i == 0 or ring[i] < ring_min:
+            ring_min = ring[i]
+    ring_max = 0
+    for i in range(count):
+        ring[i] -= ring_min
+        ring_max = max(ring_max, ring[i])
+    sums = np.zeros(ring_max + 1)
+    counts = np.zeros(ring_max + 1, dtype=np.intp)
+    for i in range(count):
+        sums[ring[i]] += log_rho[i]
+        counts[ring[i]] += 1
+    for i in range(count):
+        deviation[i] = log_rho[i] - sums[ring[i]] / np.float64(counts[ring[i]])
+    return deviation
+
+
+def _ring_deviation_reference(log_r, log_rho, log_ratio):
+    """numpy twin of :func:`_ring_deviation_loop`: relative_density's arithmetic."""
+    if log_r.size == 0:
+        return np.empty(0)
+    ring = np.floor(log_r / log_ratio).astype(np.intp)
+    ring -= ring.min()
+    sums = np.bincount(ring, weights=log_rho)
+    counts = np.bincount(ring)
+    return log_rho - sums[ring] / counts[ring]
+
+
+def _raw_length_factors_loop(log_inverse_slope, density_rel, usable, flat, training,
+                             density_in_flat_branch, log_flat, d_min, d_max):
+    """The rest of ``length_scale_factors`` (compiled with numba), given log(1 / g) of every
+    bin and the relative rho~ of the ``usable`` ones (1 elsewhere): (d, and d where
+    ``training`` else 1, whose log the smoothing takes)."""
+    m_count, n_count = flat.shape
+    d = np.empty((m_count, n_count))
+    smoothing_input = np.empty((m_count, n_count))
+    i = 0
+    for m in range(m_count):
+        for k in range(n_count):
+            rho = 1.0
+            if usable[m, k]:
+                rho = density_rel[i]
+                i += 1
+            value = log_inverse_slope[m, k] / (rho if rho > 0 else 1.0)
+            if not density_in_flat_branch and flat[m, k]:
+                value = log_flat
+            if value < d_min:  # np.maximum / np.minimum: NaN stays NaN
+                value = d_min
+            if value > d_max:
+                value = d_max
+            d[m, k] = value
+            smoothing_input[m, k] = value if training[m, k] else 1.0
+    return d, smoothing_input
+
+
+def _raw_length_factors_reference(log_inverse_slope, density_rel, usable, flat, training,
+                                  density_in_flat_branch, log_flat, d_min, d_max):
+    """numpy twin of :func:`_raw_length_factors_loop` (run only while the pass compiles)."""
+    rho = np.ones(flat.shape)
+    rho[usable] = density_rel
+    d = log_inverse_slope / np.where(rho > 0, rho, 1.0)
+    if not density_in_flat_branch:
+        d = np.where(flat, log_flat, d)
+    d = np.minimum(np.maximum(d, d_min), d_max)
+    return d, np.where(training, d, 1.0)
+
+
+_usable_bins_compiled = compiled.kernel(_usable_bins_loop)
+_ring_deviation_compiled = compiled.kernel(_ring_deviation_loop)
+_raw_length_factors_compiled = compiled.kernel(_raw_length_factors_loop)
+_smooth_compiled = additions._smooth_compiled
+
+
+def _replace_slope(lines: LineSegments, slope: np.ndarray) -> LineSegments:
+    """``dataclasses.replace(lines, slope=slope)`` (a new object sharing the other fields)
+    without its field-by-field ``__init__`` (~4 us)."""
+    out = copy.copy(lines)
+    out.slope = slope
+    return out
+
+
+def _not_steep(candidate_index, slope, max_slope):
+    """(candidates not on a line steeper than ``max_slope`` (M, N), the number of candidates,
+    the number on steep lines): ``additions.steep_line_candidates`` over the grid's
+    candidates; the numpy reference of :func:`_not_steep_loop`."""
+    has = candidate_index >= 0
+    steep = additions.steep_line_candidates(slope, max_slope)
+    steep &= has
+    # count_nonzero: a fifth of bool.sum()'s cost at this size
+    return has & ~steep, np.count_nonzero(has), np.count_nonzero(steep)
+
+
+def _not_steep_loop(candidate_index, slope, max_slope):
+    """:func:`_not_steep` in one pass (compiled with numba): the same comparisons (a NaN
+    slope is not steep)."""
+    m_count, n_count = slope.shape
+    training = np.empty((m_count, n_count), dtype=np.bool_)
+    candidates = 0
+    steep_count = 0
+    for m in range(m_count):
+        for k in range(n_count):
+            has = candidate_index[m, k] >= 0
+            steep = has and slope[m, k] > max_slope
+            training[m, k] = has and not steep
+            candidates += has
+            steep_count += steep
+    return training, candidates, steep_count
+
+
+_not_steep_compiled = compiled.kernel(_not_steep_loop)
+
+
+def _anchor_rows(candidate_index, d, training):
+    """(segments with a candidate (M,), each one's first training candidate's d, the last d
+    of a row without one): the anchor's rows and length factors; the numpy reference of
+    :func:`_anchor_rows_loop`."""
+    return (candidate_index >= 0).any(axis=1), _first_known_along_rows(d, training)
+
+
+def _anchor_rows_loop(candidate_index, d, training):
+    """:func:`_anchor_rows` in one pass over the rows (compiled with numba): the same values
+    without its ~8 numpy calls."""
+    m_count, n_count = d.shape
+    segments = np.zeros(m_count, dtype=np.bool_)
+    length_factor = np.empty(m_count, dtype=d.dtype)
+    for m in range(m_count):
+        for k in range(n_count):
+            if candidate_index[m, k] >= 0:
+                segments[m] = True
+                break
+        pick = n_count - 1
+        for k in range(n_count):
+            if training[m, k]:
+                pick = k
+                break
+        length_factor[m] = d[m, pick]
+    return segments, length_factor
+
+
+_anchor_rows_compiled = compiled.kernel(_anchor_rows_loop)
+
+
 def _first_known_along_rows(values: np.ndarray, known: np.ndarray) -> np.ndarray:
     """Column 0 of ``_fill_along_rows(values, known)`` without filling the rows: each row's
     first known entry, the last entry in a row without one."""
@@ -473,12 +737,13 @@ class GroundSegmenter:
     def warm_up(self) -> None:
         """Compile (or load from numba's cache) the GP step now, not inside the first frame, and
         have the stages with a bit-identical numpy twin (valid points, grid pass, line growing,
-        plateau state machine, GP batch padding, outlier pass, length factors at the bin
-        edges, cross-segment rise, label pass, structure selection and look-ups, surface offsets
-        and rows) compiled in the background (core/compiled.py; up to _BACKGROUND_WAIT_S is
-        waited for them, enough to load them from the cache, unless the GP step took longer
-        than _GP_CACHE_LOAD_MAX_S: then the cache was empty and they are compiling, which
-        frames need not wait for). See gp_compiled.py for where the cache lives.
+        plateau state machine, training mask, length factors, the anchor's rows, GP batch
+        padding, outlier pass with its wide-terrain rule, the slots' noise, length factors at
+        the bin edges, cross-segment rise, label pass, structure selection with its cells and
+        look-ups, surface offsets and rows) compiled in the background (core/compiled.py; up to
+        _BACKGROUND_WAIT_S is waited for them, enough to load them from the cache, unless the
+        GP step took longer than _GP_CACHE_LOAD_MAX_S: then the cache was empty and they are
+        compiling, which frames need not wait for). See gp_compiled.py for where the cache lives.
 
         The GP's posterior std at the bin edges is compiled now only when the labels use it
         (``ground_threshold_std_factor`` > 0); otherwise only the ground surface's z_std and
@@ -539,19 +804,32 @@ class GroundSegmenter:
         lines = extract_lines(grid.candidate_r, grid.candidate_z, grid.density,
                               variance_ratio=1.0, max_slope=1.0, max_distance_m=1.0,
                               max_gap_m=1.0, max_density_jump=2.0)
+        # the training mask (candidates not on steep lines)
+        compiled.run(True, _not_steep_compiled, _not_steep, grid.candidate_index, lines.slope,
+                     1.0)
         additions.elevated_plateaus(grid.candidate_r, grid.candidate_z, lines.slope_before,
                                     step_up_m=0.3, max_slope=1.0, max_gap_m=1.0)
         # the chord slopes of one-point lines, the anchor (first lines' intercepts, a median)
         additions.one_point_line_slopes(lines.slope, grid.candidate_r, grid.candidate_z)
         additions.ground_under_sensor(grid.candidate_z, grid.has_candidate, lines.line_id,
                                       lines.line_count, lines.intercept)
-        # the length factors' smoothing along the segments
-        additions.smooth_length_factors(np.ones((2, 2)), grid.has_candidate, 1)
+        # the length factors (relative rho~, slopes, the smoothing along the segments)
+        _length_factors_fused(lines.slope, grid.density, grid.candidate_r, grid.has_candidate,
+                              0.1, 0.9, False, 0.05, 50.0, 1)
+        # the anchor's rows and length factors
+        compiled.run(True, _anchor_rows_compiled, _anchor_rows, grid.candidate_index,
+                     np.ones((2, 2)), grid.has_candidate)
         # the GP batch's padding, the outlier pass, the length factors at the bin edges, the
         # threshold's rise
         gp = FrameGP(grid.candidate_r, grid.candidate_z, np.ones((2, 2)), grid.has_candidate,
                      backend='numba')
-        self._reject_outliers(gp, gp.solve(np.ones(3)), np.zeros(gp.shape, dtype=bool))
+        sol = gp.solve(np.ones(3))
+        self._reject_outliers(gp, sol, np.zeros(gp.shape, dtype=bool))
+        gp.with_noise(np.zeros(gp.shape))  # the slots' noise (when a pass finds outliers)
+        # the wide-terrain rule of the outlier pass (run only when a pass finds outliers)
+        compiled.run(True, _not_wide_terrain_compiled, lambda new, *_: new,
+                     grid.has_candidate, sol.alpha, sol.a_inv, gp.valid, gp.is_anchor,
+                     gp.segments, gp.bins, gp.r, gp.z, 1.0, 1.0)
         additions.wide_terrain_candidates(grid.has_candidate, np.ones((2, 2)), 1.0,
                                           r=np.ones((2, 2)), max_slope=1.0)
         compiled.run(True, _fill_rows_to_edges_compiled, _fill_rows_to_edges,
@@ -600,27 +878,24 @@ class GroundSegmenter:
     def _training_candidates(self, grid: RadialGrid, lines: LineSegments, stats: dict):
         """Candidates that may train the GP: not on a steep line, not on an elevated plateau."""
         p = self._params
-        compiled = self._backend == 'numba'
-        has = grid.has_candidate
-        steep = additions.steep_line_candidates(lines.slope, p.line_max_slope)
-        steep &= has
-        training = has & ~steep
+        use_compiled = self._backend == 'numba'
+        training, candidates, steep_count = compiled.run(
+            use_compiled, _not_steep_compiled, _not_steep, grid.candidate_index, lines.slope,
+            float(p.line_max_slope))
         elevated_count = 0
         if p.use_elevated_plateaus:
             start = None
             if p.plateau_from_sensor_ground:
                 start = additions.ground_under_sensor(grid.candidate_z, training, lines.line_id,
                                                       lines.line_count, lines.intercept,
-                                                      compiled=compiled)
+                                                      compiled=use_compiled)
             elevated = additions.elevated_plateaus(
                 grid.candidate_r, grid.candidate_z, lines.slope_before, step_up_m=p.plateau_step_m,
                 max_slope=p.line_max_slope, max_gap_m=p.line_max_gap_m, start_height_m=start,
-                end_on_drop=p.plateau_ends_on_drop, compiled=compiled)
+                end_on_drop=p.plateau_ends_on_drop, compiled=use_compiled)
             elevated_count = int(np.count_nonzero(elevated))
             training &= ~elevated
-        # count_nonzero: a fifth of bool.sum()'s cost at this size
-        stats.update(candidates=int(np.count_nonzero(has)),
-                     steep_line_candidates=int(np.count_nonzero(steep)),
+        stats.update(candidates=int(candidates), steep_line_candidates=int(steep_count),
                      elevated_candidates=elevated_count, lines=int(lines.line_count.size))
         return training
 
@@ -628,13 +903,10 @@ class GroundSegmenter:
         """d_i of every candidate from its line's slope and its relative rho~ (gp.py), smoothed
         along the segment when ``length_factor_smoothing_passes`` asks (ours, additions.py)."""
         p = self._params
-        density_rel = relative_density(grid.density, grid.candidate_r, training)
-        d = length_scale_factors(lines.slope, density_rel,
-                                 slope_floor=p.slope_floor, slope_ceiling=p.slope_ceiling,
-                                 density_in_flat_branch=p.density_in_flat_branch,
-                                 d_min=p.min_length_factor, d_max=p.max_length_factor)
-        return additions.smooth_length_factors(d, training, p.length_factor_smoothing_passes,
-                                               compiled=self._backend == 'numba')
+        return (_length_factors_fused if self._backend == 'numba' else _length_factors_numpy)(
+            lines.slope, grid.density, grid.candidate_r, training, p.slope_floor,
+            p.slope_ceiling, p.density_in_flat_branch, p.min_length_factor, p.max_length_factor,
+            p.length_factor_smoothing_passes)
 
     def _anchor(self, grid: RadialGrid, lines: LineSegments, training, d, stats):
         """The ground under the vehicle as a GP point at r = 0 of every segment with candidates."""
@@ -644,8 +916,10 @@ class GroundSegmenter:
         height = additions.ground_under_sensor(grid.candidate_z, training, lines.line_id,
                                                lines.line_count, lines.intercept)
         stats['anchor_height_m'] = height
-        return GroundAnchor(height, p.anchor_std_m ** 2, grid.has_candidate.any(axis=1),
-                            _first_known_along_rows(d, training))
+        segments, length_factor = compiled.run(
+            self._backend == 'numba', _anchor_rows_compiled, _anchor_rows, grid.candidate_index,
+            d, training)
+        return GroundAnchor(height, p.anchor_std_m ** 2, segments, length_factor)
 
     def _reject_outliers(self, gp: FrameGP, sol: GPSolution, outliers):
         """One robust pass: (GP, solution, outliers) with the new outliers' noise made huge."""
@@ -667,11 +941,18 @@ class GroundSegmenter:
         if new.any() and p.outlier_wide_terrain_m > 0:
             # obstacle tops (residual above, not the reflection noise below) that the
             # neighbouring segments continue are terrain: they keep training
-            above = new & (gp.to_grid(gp.loo_residuals(sol), np.nan) > 0)
-            new &= ~additions.wide_terrain_candidates(
-                above, gp.to_grid(gp.z, np.nan), p.outlier_wide_terrain_m,
-                r=gp.to_grid(gp.r, np.nan), max_slope=p.outlier_wide_terrain_max_slope,
-                compiled=gp.backend == 'numba')
+            def wide_terrain_reference(*_):
+                above = new & (gp.to_grid(gp.loo_residuals(sol), np.nan) > 0)
+                return new & ~additions.wide_terrain_candidates(
+                    above, gp.to_grid(gp.z, np.nan), p.outlier_wide_terrain_m,
+                    r=gp.to_grid(gp.r, np.nan), max_slope=p.outlier_wide_terrain_max_slope,
+                    compiled=gp.backend == 'numba')
+
+            new = compiled.run(gp.backend == 'numba', _not_wide_terrain_compiled,
+                               wide_terrain_reference, new, sol.alpha, sol.a_inv, gp.valid,
+                               gp.is_anchor, gp.segments, gp.bins, gp.r, gp.z,
+                               float(p.outlier_wide_terrain_m),
+                               float(p.outlier_wide_terrain_max_slope))
         if not new.any():
             return gp, sol, outliers
         outliers = outliers | new
@@ -729,9 +1010,11 @@ class GroundSegmenter:
                      backend=self._backend, mean=mean)
         gp, sol, theta, outliers = self._fit_robustly(gp, stats)
         self._theta = Hyperparameters(*(float(v) for v in theta))
-        trained = gp.to_grid(gp.valid, False) & ~outliers
-        stats['outlier_candidates'] = int(outliers.sum())
-        stats['training_candidates'] = int(trained.sum())
+        # the GP's grid slots are the training candidates (gp.to_grid(gp.valid, False) is
+        # ``training``), less the rejected ones
+        trained = training & ~outliers
+        stats['outlier_candidates'] = int(np.count_nonzero(outliers))
+        stats['training_candidates'] = int(np.count_nonzero(trained))
         default_height = anchor.height_m if anchor is not None else gp.mean
         return _GroundModel(gp, sol, theta, trained, outliers, d, default_height)
 
@@ -742,7 +1025,10 @@ class GroundSegmenter:
         if p.ground_threshold_std_factor > 0:
             threshold = threshold + p.ground_threshold_std_factor * std
         if p.use_cross_slope_threshold:
-            threshold = threshold + additions.cross_segment_rise(edges, mean, p.cross_slope_max)
+            rise = additions.cross_segment_rise(edges, mean, p.cross_slope_max,
+                                                compiled=self._backend == 'numba')
+            rise += threshold  # a new array: threshold + rise, in place (addition commutes)
+            return np.minimum(rise, p.max_threshold_m, out=rise)
         return np.minimum(threshold, p.max_threshold_m)
 
     # ------------------------------------------------------------------------------------
@@ -750,7 +1036,8 @@ class GroundSegmenter:
         """Label every point of one frame as ground or not; see the module docstring."""
         # overflow to inf is handled where it can happen (absurdly far points: the kernel between
         # them becomes 0); do not spray RuntimeWarnings into a node's log for it
-        with _single_threaded_blas(), np.errstate(over='ignore'):
+        blas = _single_threaded_blas() if self._backend != 'numba' else contextlib.nullcontext()
+        with blas, np.errstate(over='ignore'):
             pose = self._params.sensor_pose
             if pose.is_identity:  # a cloud in the sensor frame: no copy
                 return self._segment(points, details)
@@ -797,9 +1084,9 @@ class GroundSegmenter:
         valid_index = slice(None) if all_valid else np.flatnonzero(valid)
         stats['points'] = n_points
         stats['valid_points'] = n_valid
-        ground = np.zeros(n_points, dtype=bool)
-        height = np.full(n_points, np.nan)
         if n_valid == 0:
+            ground = np.zeros(n_points, dtype=bool)
+            height = np.full(n_points, np.nan)
             timings['total'] = (time.perf_counter() - t_start) * 1e3
             return SegmentationResult(ground, valid, height, self._theta, timings, stats,
                                       ground_surface=GroundSurface.empty(p.num_segments,
@@ -818,7 +1105,7 @@ class GroundSegmenter:
                               max_density_jump=p.line_max_density_jump,
                               compiled=self._backend == 'numba')
         if p.use_chord_slope_for_single_points:
-            lines = dataclasses.replace(lines, slope=additions.one_point_line_slopes(
+            lines = _replace_slope(lines, additions.one_point_line_slopes(
                 lines.slope, grid.candidate_r, grid.candidate_z,
                 compiled=self._backend == 'numba'))
         training = self._training_candidates(grid, lines, stats)
@@ -852,8 +1139,13 @@ class GroundSegmenter:
             ground_v &= ~feet
             stats['structure_feet'] = int(np.count_nonzero(feet))
             timings['structure'] = (time.perf_counter() - t) * 1e3
-        ground[valid_index] = ground_v
-        height[valid_index] = z_hat
+        if all_valid:  # copies (ground_v stays the surface's), without the fill first
+            ground, height = ground_v.copy(), z_hat.astype(np.float64)
+        else:
+            ground = np.zeros(n_points, dtype=bool)
+            height = np.full(n_points, np.nan)
+            ground[valid_index] = ground_v
+            height[valid_index] = z_hat
         timings['total'] = (time.perf_counter() - t_start) * 1e3
 
         extra = None

@@ -104,9 +104,12 @@ def vertical_structure_mask(x: np.ndarray, y: np.ndarray, z: np.ndarray,
     # the limits in the precision of what they are compared with, as numpy compares an array
     # with a Python float
     height_type = np.result_type(z, ground_z).type
+    select = (angle, z, ground_z, candidate, r, height_type(rise_m), height_type(max_height_m),
+              r.dtype.type(limit))
+    if compiled and _cells_hits_compiled is not None:
+        return _mask_in_cells(select, cell_m, cell_rad, z.dtype.type(step_m))
     angle_col, z_col, r_col, cand, angle_cand, z_cand, r_cand = run(
-        compiled, _select_compiled, _select_numpy, angle, z, ground_z, candidate, r,
-        height_type(rise_m), height_type(max_height_m), r.dtype.type(limit))
+        compiled, _select_compiled, _select_numpy, *select)
     if cand.size == 0 or z_col.size == 0:
         return out
     az_col, ring_col, n_az = _polar_cells(angle_col, r_col, cell_m, cell_rad)
@@ -116,6 +119,127 @@ def vertical_structure_mask(x: np.ndarray, y: np.ndarray, z: np.ndarray,
     args = (az_col, ring_col, z_col, az_cand, ring_cand, z_cand, n_az, width,
             z.dtype.type(step_m))
     out[cand] = run(compiled, _structure_hits_compiled, _structure_hits_numpy, *args)
+    return out
+
+
+def _mask_in_cells(select, cell_m: float, cell_rad: float, step):
+    """:func:`vertical_structure_mask`'s compiled path: the selection and the points' cells
+    (:func:`_polar_cells`' arithmetic, only its log left to numpy: numba's differs from numpy's
+    in the last bit) in one compiled pass, then the far rings, the table, the look-ups and the
+    mask in another; the same mask as the numpy path, without its ~15 numpy calls."""
+    n_az = max(1, int(np.ceil(2.0 * np.pi / cell_rad)))
+    r_square = cell_m / cell_rad
+    # the constants as _segment_of_angle and _polar_cells compute them
+    cells = (n_az, n_az / (2.0 * np.pi), 1.0 / cell_m, r_square, 1.0 / r_square)
+    (az_col, ring_col, z_col, cand, az_cand, ring_cand, z_cand, far_index, n_far_col,
+     far_ratio) = run(True, _select_cells_compiled, _select_cells_numpy, *select, *cells)
+    return run(True, _cells_hits_compiled, _cells_hits_numpy, select[1].size, az_col, ring_col,
+               z_col, cand, az_cand, ring_cand, z_cand, far_index, n_far_col,
+               np.log(far_ratio), r_square / cell_m, 1.0 / cell_rad, n_az, step)
+
+
+def _cells_numpy(angle, r, n_az, az_factor, inv_cell_m, r_square):
+    """Azimuth cells, radial cells of the points within ``r_square`` (0 beyond) and the
+    indices of those beyond (numpy; :func:`_polar_cells` without the far rings' log)."""
+    az = ((angle + np.pi) * az_factor).astype(np.int32)
+    np.minimum(az, n_az - 1, out=az)
+    far = np.flatnonzero(r > r_square)
+    ring = (r * inv_cell_m).astype(np.int32)
+    ring[far] = 0
+    return az, ring, far
+
+
+def _select_cells_numpy(angle, z, ground_z, candidate, r, rise_m, max_height_m, limit, n_az,
+                        az_factor, inv_cell_m, r_square, inv_r_square):
+    """The numpy twin of :func:`_select_cells_loop` (run only while it compiles)."""
+    angle_col, z_col, r_col, cand, angle_cand, z_cand, r_cand = _select_numpy(
+        angle, z, ground_z, candidate, r, rise_m, max_height_m, limit)
+    az_col, ring_col, far_col = _cells_numpy(angle_col, r_col, n_az, az_factor, inv_cell_m,
+                                             r_square)
+    az_cand, ring_cand, far_cand = _cells_numpy(angle_cand, r_cand, n_az, az_factor,
+                                                inv_cell_m, r_square)
+    far_ratio = np.concatenate([r_col[far_col], r_cand[far_cand]]) * inv_r_square
+    return (az_col, ring_col, z_col, cand, az_cand, ring_cand, z_cand,
+            np.concatenate([far_col, far_cand]), far_col.size, far_ratio)
+
+
+def _select_cells_loop(angle, z, ground_z, candidate, r, rise_m, max_height_m, limit, n_az,
+                       az_factor, inv_cell_m, r_square, inv_r_square):
+    """The compiled selection (:func:`_select_loop`) and the cells of the points it selects
+    (compiled with numba): azimuth cell, radial cell out to ``r_square`` (0 beyond), and of
+    the points beyond it their index (column points first, then candidates; ``n_far_col`` of
+    the former) and r / r_square, whose log numpy takes (:func:`_polar_cells`'
+    arithmetic, the same float64 operations)."""
+    angle_col, z_col, r_col, cand, angle_cand, z_cand, r_cand = _select_compiled(
+        angle, z, ground_z, candidate, r, rise_m, max_height_m, limit)
+    n_col, n_cand = z_col.size, z_cand.size
+    az_col = np.empty(n_col, dtype=np.int32)
+    ring_col = np.empty(n_col, dtype=np.int32)
+    az_cand = np.empty(n_cand, dtype=np.int32)
+    ring_cand = np.empty(n_cand, dtype=np.int32)
+    far_index = np.empty(n_col + n_cand, dtype=np.intp)
+    far_ratio = np.empty(n_col + n_cand)
+    n_far = 0
+    n_far_col = 0
+    for part in range(2):
+        angles, ranges = (angle_col, r_col) if part == 0 else (angle_cand, r_cand)
+        az, ring = (az_col, ring_col) if part == 0 else (az_cand, ring_cand)
+        for i in range(ranges.size):
+            az[i] = min(np.int32((angles[i] + np.pi) * az_factor), n_az - 1)
+            if ranges[i] > r_square:
+                ring[i] = 0
+                far_index[n_far] = i
+                far_ratio[n_far] = ranges[i] * inv_r_square
+                n_far += 1
+            else:
+                ring[i] = np.int32(ranges[i] * inv_cell_m)
+        if part == 0:
+            n_far_col = n_far
+    return (az_col, ring_col, z_col, cand, az_cand, ring_cand, z_cand, far_index[:n_far],
+            n_far_col, far_ratio[:n_far])
+
+
+def _far_rings(ring_col, ring_cand, far_index, n_far_col, log_ratio, ring_base,
+               inv_cell_rad):
+    """Radial cells of the points beyond r_square (ring_base + ln(r / r_square) / cell_rad,
+    as :func:`_polar_cells` adds them) into ``ring_col`` and ``ring_cand``, in place."""
+    ring = (ring_base + log_ratio * inv_cell_rad).astype(np.int32)
+    ring_col[far_index[:n_far_col]] = ring[:n_far_col]
+    ring_cand[far_index[n_far_col:]] = ring[n_far_col:]
+
+
+def _cells_hits_numpy(n_points, az_col, ring_col, z_col, cand, az_cand, ring_cand, z_cand,
+                      far_index, n_far_col, log_ratio, ring_base, inv_cell_rad, n_az, step):
+    """The numpy twin of :func:`_cells_hits_loop` (run only while it compiles)."""
+    out = np.zeros(n_points, dtype=bool)
+    if cand.size == 0 or z_col.size == 0:
+        return out
+    ring_col, ring_cand = ring_col.copy(), ring_cand.copy()
+    _far_rings(ring_col, ring_cand, far_index, n_far_col, log_ratio, ring_base, inv_cell_rad)
+    width = int(max(ring_col.max(), ring_cand.max())) + 3
+    out[cand] = _structure_hits_numpy(az_col, ring_col, z_col, az_cand, ring_cand, z_cand,
+                                      n_az, width, step)
+    return out
+
+
+def _cells_hits_loop(n_points, az_col, ring_col, z_col, cand, az_cand, ring_cand, z_cand,
+                     far_index, n_far_col, log_ratio, ring_base, inv_cell_rad, n_az, step):
+    """The far rings (written into ``ring_col`` and ``ring_cand``), the compiled table and
+    look-ups (:func:`_structure_hits_loop`) and the (P,) mask of the ``cand`` points that
+    hit, in one compiled call: the same mask as :func:`_cells_hits_numpy`."""
+    out = np.zeros(n_points, dtype=np.bool_)
+    if cand.size == 0 or z_col.size == 0:
+        return out
+    for f in range(far_index.size):
+        ring = np.int32(ring_base + log_ratio[f] * inv_cell_rad)
+        if f < n_far_col:
+            ring_col[far_index[f]] = ring
+        else:
+            ring_cand[far_index[f]] = ring
+    hit = _structure_hits_compiled(az_col, ring_col, z_col, az_cand, ring_cand, z_cand, n_az,
+                                   0, step)
+    for i in range(cand.size):
+        out[cand[i]] = hit[i]
     return out
 
 
@@ -250,3 +374,7 @@ def _structure_hits_loop(az_col, ring_col, z_col, az_cand, ring_cand, z_cand, n_
 
 
 _structure_hits_compiled = kernel(_structure_hits_loop)
+_select_cells_compiled = _cells_hits_compiled = None
+if _structure_hits_compiled is not None:  # these passes call the compiled ones above
+    _select_cells_compiled = kernel(_select_cells_loop)
+    _cells_hits_compiled = kernel(_cells_hits_loop)

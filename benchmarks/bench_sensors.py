@@ -169,6 +169,11 @@ def main(argv=None):
     if args.runs < 1:
         ap.error('--runs must be >= 1')
 
+    # glibc's malloc settings as the node's main() and the command line set them (README,
+    # "Memory"): without them, whether a process pays hundreds of minor page faults a frame
+    # depends on what it allocated and freed before, for both methods alike
+    from gp_ground_segmentation.core.allocator import keep_freed_memory
+    allocator_note = keep_freed_memory()
     clouds = load_clouds()
     if not clouds:
         sys.exit('no clouds found (see ../shared/data/README.md)')
@@ -192,7 +197,10 @@ def main(argv=None):
     text = ['## Every sensor: this project vs Patchwork++ per scan (`bench_sensors.py`)', '',
             common.machine_markdown(common.command_line()), '',
             f'Warm calls: median of {args.runs} after 3 untimed, GP and Patchwork++ '
-            'interleaved call by call in one process; (N, 3) float32 input to both.', '',
+            'interleaved call by call in one process; (N, 3) float32 input to both; '
+            + ('glibc malloc thresholds set as the node sets them (core/allocator.py).'
+               if allocator_note is None else f'malloc settings unchanged: {allocator_note}.'),
+            '',
             common.markdown_table(headers, rows)]
 
     if not args.no_first_call:

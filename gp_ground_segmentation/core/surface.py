@@ -345,26 +345,18 @@ def _points_loop(r_min, width, mean, offset, gp_std, supported, cos_c, sin_c, ro
                  translation, rotated, supported_only):
     """:meth:`GroundSurface.points` in one pass (compiled with numba): per prediction point the
     reference's x, y, z (r, the GP mean plus the ground offset, the pose), z_std (the GP std and
-    the across-segment spread from the uncapped cross-segment rise, _rise_loop with the same
-    table span) in float64, the same operations in the same order, then the float32 row, kept
+    the across-segment spread from the uncapped cross-segment rise, additions._rise_loop) in
+    float64, the same operations in the same order, then the float32 row, kept
     when finite. ``cos_c``, ``sin_c``: (M,) numpy's cosine and sine of the segment centres;
     ``rotation``, ``translation``: the pose's R and t, R used when ``rotated``."""
     m_count, n_edges = mean.shape
     r = np.empty((m_count, n_edges))
     level = np.empty((m_count, n_edges))  # the supported segments' ground, NaN elsewhere
-    span = -np.inf  # np.nanmax(r) + 1, as cross_segment_rise's table span
-    seen = False
     for s in range(m_count):
         for k in range(n_edges):
-            value = r_min[s] + k * width[s]
-            r[s, k] = value
-            if not np.isnan(value):
-                seen = True
-                if value > span:
-                    span = value
+            r[s, k] = r_min[s] + k * width[s]
             level[s, k] = mean[s, k] + offset[s, k] if supported[s] else np.nan
-    span = span + 1.0 if seen else np.nan
-    rise = _rise_loop_compiled(r, level, _UNCAPPED_SLOPE, span)
+    rise = _rise_loop_compiled(r, level, _UNCAPPED_SLOPE)
     divisor = 2.0 * np.sqrt(3.0)
     rows = 0
     for s in range(m_count):

@@ -464,8 +464,9 @@ def test_compiled_cross_segment_rise_equals_the_numpy_reference(seed):
 @pytest.mark.parametrize('seed', range(30))
 def test_compiled_wide_terrain_equals_the_numpy_reference(seed):
     """The compiled wide-terrain pass gives the numpy reference's mask: random grids with empty
-    bins, terraces of nearly equal heights (comparisons at the tolerance), equal ranges (an
-    infinite slope), one or two segments (a neighbour that is the segment itself), no r."""
+    bins, terraces of nearly equal heights (comparisons at the tolerance), infinite heights,
+    equal ranges (an infinite slope), one or two segments (a neighbour that is the segment
+    itself), no r."""
     from gp_ground_segmentation.core import additions
     if additions._wide_terrain_compiled is None:
         pytest.skip('numba not installed')
@@ -473,6 +474,8 @@ def test_compiled_wide_terrain_equals_the_numpy_reference(seed):
     m_count, n_bins = int(rng.integers(1, 12)), int(rng.integers(1, 12))
     z = rng.choice([0.0, 0.5, 1.0, 2.0], (m_count, n_bins)) + rng.normal(0.0, 0.3) * (seed % 2)
     z[rng.random(z.shape) < 0.3] = NAN
+    if seed % 3 == 0:  # infinite heights are no candidates either (the reference's isfinite)
+        z[rng.random(z.shape) < 0.1] = rng.choice([-np.inf, np.inf])
     r = np.sort(rng.uniform(1.0, 20.0, (m_count, n_bins)), axis=1)
     if n_bins > 2:
         r[:, 2] = r[:, 1]

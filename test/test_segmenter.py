@@ -1,6 +1,7 @@
 # SPDX-License-Identifier: Apache-2.0
 """Pipeline tests: synthetic scenes with exact truth, the real labelled frame, API contracts."""
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -577,11 +578,17 @@ def test_compiled_training_mask_and_anchor_rows_equal_the_numpy_reference(seed):
             np.testing.assert_array_equal(a, b)
 
 
-def test_warm_up_queues_every_compiled_stage_a_frame_needs():
+def test_warm_up_queues_every_compiled_stage_a_frame_needs(tmp_path):
     """After warm_up(), frames of either precision and layout ask numba for no signature it
     has not queued (a missed one compiles, or loads, only once a frame needs it: seconds of
     numpy-path frames on a new install, even after the recommended warm-up command). In a fresh
-    interpreter: in this one, earlier tests' frames have queued everything already."""
+    interpreter: in this one, earlier tests' frames have queued everything already.
+
+    With an empty numba cache, and every queued kernel must then compile: numba does not
+    rebuild a cached kernel when a kernel of another module that it calls changes, so a
+    signature mismatch between them (surface._points_loop calling additions._rise_loop after
+    its arguments changed) passed on a machine with the old cache and failed only in a fresh
+    clone."""
     import subprocess
     import sys
     from gp_ground_segmentation.core import compiled
@@ -603,12 +610,17 @@ def test_warm_up_queues_every_compiled_stage_a_frame_needs():
             seg.segment(cloud).ground_surface.points()
         for kernel, signature in set(compiled._queued) - queued:
             print('MISSING', kernel.py_func.__name__, signature)
+        print('WAITED', compiled.wait(240.0))
+        for kernel in compiled._failed:
+            print('FAILED', kernel.py_func.__name__)
         """
     root = Path(__file__).resolve().parents[1]
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path))
     out = subprocess.run([sys.executable, '-c', script], cwd=root, capture_output=True,
-                         text=True, timeout=300)
+                         text=True, timeout=400, env=env)
     assert out.returncode == 0, out.stderr[-2000:]
     assert 'MISSING' not in out.stdout, out.stdout
+    assert 'WAITED True' in out.stdout and 'FAILED' not in out.stdout, out.stdout
 
 
 @pytest.mark.parametrize('std_factor, std_now', [(0.0, False), (0.5, True)])

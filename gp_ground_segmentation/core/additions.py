@@ -374,9 +374,9 @@ def _wide_terrain_loop(mask, z, r, tolerance_m, max_slope):
             for k in (b - 1, b + 1):
                 if 0 <= k < n_bins and z[m, k] < low:
                     keep = False
-            if keep and not np.isnan(height):
+            if keep and np.isfinite(height):
                 for k in range(b - 1, -1, -1):  # the previous candidate of the segment
-                    if not np.isnan(z[m, k]):
+                    if np.isfinite(z[m, k]):
                         rise = height - z[m, k]
                         run_m = r[m, b] - r[m, k]
                         if run_m != 0.0:
@@ -388,7 +388,7 @@ def _wide_terrain_loop(mask, z, r, tolerance_m, max_slope):
                         if slope > max_slope:
                             keep = False
                         break
-            out[m, b] = keep and not np.isnan(height)
+            out[m, b] = keep and np.isfinite(height)
     return out
 
 

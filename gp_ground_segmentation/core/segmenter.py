@@ -102,8 +102,11 @@ def _single_threaded_blas():
     Measured on the 124k-point KITTI frame: the same wall time, half the CPU time (31 vs 62 ms
     per frame), which leaves the other core to the ROS executor (benchmarks/RESULTS.md).
     Only the numpy GP needs it: the compiled one calls no BLAS (``segment`` skips the ~10 us
-    of setting and restoring the limit then; a frame whose kernel fails half-way finishes its
-    numpy GP without the limit, the same numbers).
+    of setting and restoring the limit then). A compiled frame can still run numpy's GP
+    without the limit, with the same numbers: when its kernel fails half-way, and when the
+    compiled Cholesky finds a matrix not positive definite and that solve falls back to numpy
+    (``FrameGP._solve_compiled`` returns None; not seen on the shared scans). That costs CPU
+    time on the other core for that frame only.
     """
     global _blas
     if _blas is None:

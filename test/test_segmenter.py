@@ -513,7 +513,7 @@ def test_compiled_length_factors_equal_the_numpy_reference(seed):
     usable, r_usable, rho_usable = module._usable_bins_reference(*pass_args)[:3]
     logs = (np.log(r_usable), np.log(rho_usable), float(np.log(1.15)))
     np.testing.assert_array_equal(module._ring_deviation_compiled(*logs),
-                                  module._ring_deviation_reference(*logs))
+                                  module.ring_log_deviation(*logs))
 
 
 @pytest.mark.parametrize('seed', range(6))

@@ -287,10 +287,19 @@ def relative_density(density: np.ndarray, candidate_r: np.ndarray, mask: np.ndar
     usable = mask & (density > 0) & np.isfinite(candidate_r) & (candidate_r > 0)
     if not usable.any():
         return out
-    ring = np.floor(np.log(candidate_r[usable]) / np.log(ring_ratio)).astype(np.intp)
+    out[usable] = np.exp(ring_log_deviation(np.log(candidate_r[usable]),
+                                            np.log(density[usable]), np.log(ring_ratio)))
+    return out
+
+
+def ring_log_deviation(log_r: np.ndarray, log_rho: np.ndarray, log_ratio: float) -> np.ndarray:
+    """log rho~ minus its mean over the log-range ring of width ``log_ratio`` it falls in
+    (:func:`relative_density`'s arithmetic on its usable bins; the segmenter's compiled
+    length-factor pass uses it as its numpy twin)."""
+    if log_r.size == 0:
+        return np.empty(0)
+    ring = np.floor(log_r / log_ratio).astype(np.intp)
     ring -= ring.min()
-    log_rho = np.log(density[usable])
     sums = np.bincount(ring, weights=log_rho)
     counts = np.bincount(ring)
-    out[usable] = np.exp(log_rho - sums[ring] / counts[ring])
-    return out
+    return log_rho - sums[ring] / counts[ring]

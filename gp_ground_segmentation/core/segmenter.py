@@ -77,7 +77,7 @@ from threadpoolctl import ThreadpoolController
 from . import additions
 from . import compiled, gp_compiled
 from .gp import FrameGP, GPSolution, GroundAnchor, length_scale_factors, resolve_backend
-from .grid import RING_RATIO, RadialGrid, build_grid, relative_density
+from .grid import RING_RATIO, RadialGrid, build_grid, relative_density, ring_log_deviation
 from .lines import LineSegments, extract_lines
 from .params import SegmenterParams
 from .sensor_frame import ground_height_in_cloud_frame, to_levelled_frame
@@ -492,7 +492,7 @@ def _length_factors_fused(slope, density, candidate_r, training, slope_floor, sl
         slope, float(slope_floor), float(slope_ceiling))
     # rho~ over its ring's geometric mean, of the usable bins (relative_density)
     log_rho = np.log(rho_usable)
-    density_rel = np.exp(compiled.run(True, _ring_deviation_compiled, _ring_deviation_reference,
+    density_rel = np.exp(compiled.run(True, _ring_deviation_compiled, ring_log_deviation,
                                       np.log(r_usable), log_rho, log_ratio))
     d, smoothing_input = compiled.run(
         True, _raw_length_factors_compiled, _raw_length_factors_reference, np.log(inverse_slope),
@@ -541,8 +541,8 @@ def _usable_bins_reference(density, candidate_r, training, slope, slope_floor, s
 
 
 def _ring_deviation_loop(log_r, log_rho, log_ratio):
-    """log rho~ minus the mean of its range ring (``relative_density``; compiled with numba),
-    the ring sums accumulated in the order np.bincount sums them."""
+    """``grid.ring_log_deviation`` (compiled with numba): log rho~ minus the mean of its range
+    ring, the ring sums accumulated in the order np.bincount sums them."""
     count = log_r.size
     deviation = np.empty(count)
     if count == 0:
@@ -565,17 +565,6 @@ def _ring_deviation_loop(log_r, log_rho, log_ratio):
     for i in range(count):
         deviation[i] = log_rho[i] - sums[ring[i]] / np.float64(counts[ring[i]])
     return deviation
-
-
-def _ring_deviation_reference(log_r, log_rho, log_ratio):
-    """numpy twin of :func:`_ring_deviation_loop`: relative_density's arithmetic."""
-    if log_r.size == 0:
-        return np.empty(0)
-    ring = np.floor(log_r / log_ratio).astype(np.intp)
-    ring -= ring.min()
-    sums = np.bincount(ring, weights=log_rho)
-    counts = np.bincount(ring)
-    return log_rho - sums[ring] / counts[ring]
 
 
 def _raw_length_factors_loop(log_inverse_slope, density_rel, usable, flat, training,

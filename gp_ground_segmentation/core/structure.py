@@ -138,11 +138,10 @@ def _mask_in_cells(select, cell_m: float, cell_rad: float, step):
                np.log(far_ratio), r_square / cell_m, 1.0 / cell_rad, n_az, step)
 
 
-def _cells_numpy(angle, r, n_az, az_factor, inv_cell_m, r_square):
+def _cells_numpy(angle, r, n_az, inv_cell_m, r_square):
     """Azimuth cells, radial cells of the points within ``r_square`` (0 beyond) and the
     indices of those beyond (numpy; :func:`_polar_cells` without the far rings' log)."""
-    az = ((angle + np.pi) * az_factor).astype(np.int32)
-    np.minimum(az, n_az - 1, out=az)
+    az = _segment_of_angle(angle, n_az)
     far = np.flatnonzero(r > r_square)
     ring = (r * inv_cell_m).astype(np.int32)
     ring[far] = 0
@@ -154,10 +153,8 @@ def _select_cells_numpy(angle, z, ground_z, candidate, r, rise_m, max_height_m, 
     """The numpy twin of :func:`_select_cells_loop` (run only while it compiles)."""
     angle_col, z_col, r_col, cand, angle_cand, z_cand, r_cand = _select_numpy(
         angle, z, ground_z, candidate, r, rise_m, max_height_m, limit)
-    az_col, ring_col, far_col = _cells_numpy(angle_col, r_col, n_az, az_factor, inv_cell_m,
-                                             r_square)
-    az_cand, ring_cand, far_cand = _cells_numpy(angle_cand, r_cand, n_az, az_factor,
-                                                inv_cell_m, r_square)
+    az_col, ring_col, far_col = _cells_numpy(angle_col, r_col, n_az, inv_cell_m, r_square)
+    az_cand, ring_cand, far_cand = _cells_numpy(angle_cand, r_cand, n_az, inv_cell_m, r_square)
     far_ratio = np.concatenate([r_col[far_col], r_cand[far_cand]]) * inv_r_square
     return (az_col, ring_col, z_col, cand, az_cand, ring_cand, z_cand,
             np.concatenate([far_col, far_cand]), far_col.size, far_ratio)

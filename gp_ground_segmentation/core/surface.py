@@ -356,7 +356,7 @@ def _points_loop(r_min, width, mean, offset, gp_std, supported, cos_c, sin_c, ro
         for k in range(n_edges):
             r[s, k] = r_min[s] + k * width[s]
             level[s, k] = mean[s, k] + offset[s, k] if supported[s] else np.nan
-    rise = _rise_loop_compiled(r, level, _UNCAPPED_SLOPE)
+    rise = _rise_compiled(r, level, _UNCAPPED_SLOPE)
     divisor = 2.0 * np.sqrt(3.0)
     rows = 0
     for s in range(m_count):
@@ -583,5 +583,5 @@ _bucket_of_rank = kernel(_bucket_of_rank) or _bucket_of_rank
 _median_of = kernel(_median_of) or _median_of
 _sums_to_edges = kernel(_sums_to_edges) or _sums_to_edges
 _ground_offsets_compiled = kernel(_ground_offsets_kernel)
-_rise_loop_compiled = _rise_compiled  # called by the points kernel (None without numba)
+# the points kernel calls the compiled rise (None without numba)
 _points_compiled = kernel(_points_loop) if _rise_compiled is not None else None

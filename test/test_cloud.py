@@ -242,6 +242,9 @@ def test_float32_cloud_is_make_cloud_of_the_structured_rows(rows, names):
         assert float32_cloud(header, case, names, PointCloud2) == expected
     with pytest.raises(ValueError):
         float32_cloud(header, values[:, :1], names)
+    # repeated names: make_cloud cannot build their structured dtype, and neither does this
+    with pytest.raises(ValueError, match='repeated'):
+        float32_cloud(header, np.zeros((rows, 2), np.float32), ('z', 'z'))
 
 
 def test_make_cloud_round_trip_structured_with_padding():

@@ -552,6 +552,43 @@ def test_compiled_wide_terrain_of_an_outlier_pass_equals_the_numpy_reference(see
     assert min(kept) < np.count_nonzero(new)  # some candidates are terrain
 
 
+def test_compiled_outlier_passes_survive_a_zero_leave_one_out_diagonal():
+    """An exactly zero [A^-1]_ii (never seen, but possible after an overflow) makes that slot's
+    leave-one-out residual infinite or NaN, as the numpy references compute it, instead of a
+    ZeroDivisionError out of segment(): both compiled passes equal their loops run as Python
+    on numpy scalars (numpy's division semantics)."""
+    from gp_ground_segmentation.core import segmenter as module
+    from gp_ground_segmentation.core.gp import FrameGP, GroundAnchor
+    if module._new_outliers_compiled is None or module._not_wide_terrain_compiled is None:
+        pytest.skip('numba not installed')
+    rng = np.random.default_rng(3)
+    m_count, n_bins = 8, 6
+    r = np.sort(rng.uniform(1.0, 30.0, (m_count, n_bins)), axis=1)
+    z = rng.normal(0.0, 0.1, (m_count, n_bins))
+    mask = np.ones((m_count, n_bins), bool)
+    anchor = GroundAnchor(0.0, 0.01, np.ones(m_count, bool), np.ones(m_count))
+    gp = FrameGP(r, z, np.ones((m_count, n_bins)), mask, anchor=anchor, backend='numba')
+    sol = gp.solve(np.array([0.5, 2.0, 0.1]))
+    a_inv = sol.a_inv.copy()
+    alpha = sol.alpha.copy()
+    slots = np.argwhere(gp.valid & ~gp.is_anchor)[:3]
+    for (s, i), value in zip(slots, (1.0, -1.0, 0.0)):  # +inf, -inf and NaN residuals
+        a_inv[s, i, i] = 0.0
+        alpha[s, i] = value
+    known = np.zeros((m_count, n_bins), bool)
+    args = (alpha, a_inv, gp.valid, gp.is_anchor, gp.segments, gp.bins, known, 0.5, 0.5,
+            False, 3.0)
+    with np.errstate(divide='ignore', invalid='ignore'):
+        new = module._new_outliers_compiled(*args)
+        np.testing.assert_array_equal(new, module._new_outliers_compiled.py_func(*args))
+        wide_args = (new, alpha, a_inv, gp.valid, gp.is_anchor, gp.segments, gp.bins, gp.r,
+                     gp.z, 0.3, 0.3)
+        np.testing.assert_array_equal(module._not_wide_terrain_compiled(*wide_args),
+                                      module._not_wide_terrain_compiled.py_func(*wide_args))
+    s1, i1 = slots[1]  # -inf: below the noise-spike limit (+inf meets an infinite limit)
+    assert new[gp.segments[s1], gp.bins[s1, i1]]
+
+
 @pytest.mark.parametrize('seed', range(6))
 def test_compiled_training_mask_and_anchor_rows_equal_the_numpy_reference(seed):
     """Candidates not on steep lines (with the counts) and the anchor's rows and length

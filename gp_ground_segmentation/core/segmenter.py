@@ -429,7 +429,9 @@ def _new_outliers_loop(alpha, a_inv, valid, is_anchor, segments, bins, outliers,
     return new
 
 
-_new_outliers_compiled = compiled.kernel(_new_outliers_loop)
+# numpy's error model: a zero [A^-1]_ii gives an infinite residual as in the reference, not
+# a ZeroDivisionError out of segment()
+_new_outliers_compiled = compiled.kernel(_new_outliers_loop, error_model='numpy')
 
 
 def _not_wide_terrain_loop(new, alpha, a_inv, valid, is_anchor, segments, bins, r, z,
@@ -462,7 +464,7 @@ def _not_wide_terrain_loop(new, alpha, a_inv, valid, is_anchor, segments, bins, 
 
 _not_wide_terrain_compiled = None
 if compiled.AVAILABLE:  # the pass calls the compiled wide-terrain loop
-    _not_wide_terrain_compiled = compiled.kernel(_not_wide_terrain_loop)
+    _not_wide_terrain_compiled = compiled.kernel(_not_wide_terrain_loop, error_model='numpy')
 
 
 def _length_factors_numpy(slope, density, candidate_r, training, slope_floor, slope_ceiling,

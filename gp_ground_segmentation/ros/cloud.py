@@ -371,6 +371,8 @@ def float32_cloud(header, values, names, msg_type=None):
         from sensor_msgs.msg import PointCloud2 as msg_type
     values = np.ascontiguousarray(values, dtype='<f4')
     count = len(names)
+    if len(set(names)) != count:  # make_cloud's structured dtype would refuse them too
+        raise ValueError(f'repeated field names in {list(names)}')
     if values.ndim != 2 or values.shape[1] != count:
         raise ValueError(f'values of shape {values.shape} for {count} fields')
     field_cls = _field_class(msg_type)

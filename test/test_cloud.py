@@ -182,6 +182,42 @@ def test_float64_and_int16_xyz():
                                                  np.full(n, 32767)], axis=1))
 
 
+def test_cloud_xyz_view_only_where_the_layout_allows_it():
+    """copy=False: a read-only strided view on the message data for native, consecutive,
+    aligned x, y, z of the asked precision; for every other layout the same values as a copy
+    (big-endian, another order, a gap between fields, float64 asked of float32 fields,
+    unaligned offsets, padded rows)."""
+    rng = np.random.default_rng(9)
+    n = 40
+    xyz = rng.normal(scale=30, size=(n, 3)).astype(np.float32)
+
+    def msg_of(order, offsets, step, fmt='<f4', big=False, datatype=7):
+        arr = np.zeros(n, dtype=np.dtype({'names': list(order), 'formats': [fmt] * 3,
+                                          'offsets': offsets, 'itemsize': step}))
+        for c in order:
+            arr[c] = xyz[:, 'xyz'.index(c)]
+        fields = [pf(c, o, datatype) for c, o in zip(order, offsets)]
+        return cloud(fields, step, arr.tobytes(), n, bigendian=big)
+
+    viewed = msg_of('xyz', [0, 4, 8], 16)
+    view = cloud_xyz(read_cloud(viewed), dtype=None, copy=False)
+    assert view.dtype == np.float32 and view.strides == (16, 4) and not view.flags.writeable
+    assert np.shares_memory(view, np.frombuffer(viewed.data, np.uint8))
+    np.testing.assert_array_equal(view, xyz)
+    shifted = cloud_xyz(read_cloud(msg_of('xyz', [4, 8, 12], 20)), None, copy=False)
+    assert not shifted.flags.writeable and shifted.strides == (20, 4)  # x not at 0: a view
+    np.testing.assert_array_equal(shifted, xyz)
+    copied = [msg_of('xyz', [0, 4, 8], 16, '>f4', big=True), msg_of('zxy', [0, 4, 8], 16),
+              msg_of('xyz', [0, 4, 12], 16), msg_of('xyz', [1, 5, 9], 13)]
+    for msg in copied:
+        out = cloud_xyz(read_cloud(msg), dtype=None, copy=False)
+        assert out.flags.writeable and out.flags.f_contiguous, msg.fields
+        np.testing.assert_array_equal(out, xyz)
+    out = cloud_xyz(read_cloud(viewed), dtype=np.float64, copy=False)
+    assert out.dtype == np.float64 and out.flags.writeable
+    np.testing.assert_array_equal(out, xyz)
+
+
 def test_data_as_bytes_and_list_and_longer_than_needed():
     xyz = np.arange(12, dtype=np.float32).reshape(4, 3)
     msg = cloud([pf('x', 0, 7), pf('y', 4, 7), pf('z', 8, 7)], 12, xyz.tobytes() + b'\x01\x02', 4)

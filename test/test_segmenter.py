@@ -640,8 +640,10 @@ def test_warm_up_queues_every_compiled_stage_a_frame_needs(tmp_path):
         seg.warm_up()
         queued = set(compiled._queued)
         points = simulate_scan(make_scene('mixed'), seed=3).points
+        rows = np.ascontiguousarray(points, dtype=np.float32)
+        rows.flags.writeable = False  # as the node decodes: a read-only view on msg.data
         for cloud in (points[:, :3].astype(np.float32), points[:, :3].astype(np.float64),
-                      np.ascontiguousarray(points, dtype=np.float32)[:, :3]):
+                      np.ascontiguousarray(points, dtype=np.float32)[:, :3], rows[:, :3]):
             seg.segment(cloud)
             # a warm frame too, and its surface cloud's rows (the node's ground_surface)
             seg.segment(cloud).ground_surface.points()

@@ -766,7 +766,10 @@ class GroundSegmenter:
             grids = {}
             for dtype in (np.float32, np.float64):  # both input precisions of these passes
                 xyz = np.ones((3, 2), dtype=dtype)
-                for cloud in (xyz.T.copy(), np.ones((2, 4), dtype)[:, :3]):  # (N, 3), (N, 4)
+                rows = np.ones((2, 4), dtype)
+                rows.flags.writeable = False  # the node's decode: a read-only view on msg.data
+                # (N, 3), (N, 4) and read-only rows are three signatures to numba
+                for cloud in (xyz.T.copy(), np.ones((2, 4), dtype)[:, :3], rows[:, :3]):
                     compiled.run(True, _valid_columns_compiled, _valid_columns, cloud)
                 grid = grids[dtype] = build_grid(*xyz, 2, 2)
                 if dtype == np.float32:

@@ -170,13 +170,20 @@ def read_cloud(msg):
                       else np.ascontiguousarray(rows).data)
 
 
-def cloud_xyz(points, dtype=np.float64):
+def cloud_xyz(points, dtype=np.float64, copy=True):
     """``(N, 3)`` x, y, z (native byte order, ``dtype``) from a structured point array.
 
     x, y, z may be any PointField numeric type. ``dtype``: float64 (default), float32, or None
     for the cloud's own precision (:func:`xyz_dtype`). The result is column-major, so each
-    coordinate is one contiguous array (the segmenter reads them without another copy).
-    Raises CloudFormatError when one is missing or has ``count != 1``.
+    coordinate is one contiguous array. Raises CloudFormatError when one is missing or has
+    ``count != 1``.
+
+    ``copy=False``: when x, y, z are already ``dtype`` in native byte order, side by side and
+    aligned (x, y, z at offsets o, o + 4, o + 8 of every FLOAT32 point, as every LiDAR driver
+    writes them), a read-only strided **view** on the points (on msg.data after read_cloud):
+    the segmenter's first pass reads the rows once instead of this function copying them into
+    columns first (benchmarks/RESULTS.md, "The node's decode as a view"). Otherwise the copy,
+    as with ``copy=True``.
     """
     names = points.dtype.names
     if names is None:
@@ -188,14 +195,36 @@ def cloud_xyz(points, dtype=np.float64):
         ft = points.dtype.fields[c][0]
         if ft.shape != ():
             raise CloudFormatError(f"field '{c}' has count {int(np.prod(ft.shape))}, expected 1")
-    out = np.empty((points.shape[0], 3), dtype=xyz_dtype(points) if dtype is None else dtype,
-                   order='F')
+    dtype = xyz_dtype(points) if dtype is None else np.dtype(dtype)
+    if not copy:
+        view = _xyz_view(points, dtype)
+        if view is not None:
+            return view
+    out = np.empty((points.shape[0], 3), dtype=dtype, order='F')
     # Signalling-NaN bit patterns (driver garbage) raise FE_INVALID when widened; they still
     # become NaN, which the segmenter treats as invalid, so the warning is only noise.
     with np.errstate(invalid='ignore'):
         for j, c in enumerate(('x', 'y', 'z')):
             out[:, j] = points[c]  # casts and byte-swaps to native order in one pass
     return out
+
+
+def _xyz_view(points, dtype):
+    """(N, 3) read-only view of x, y, z in ``points`` when they are ``dtype`` (native order),
+    consecutive and aligned; None otherwise (:func:`cloud_xyz`)."""
+    fields = points.dtype.fields
+    size = dtype.itemsize
+    offsets = [fields[c][1] for c in ('x', 'y', 'z')]
+    if (any(fields[c][0] != dtype for c in ('x', 'y', 'z'))  # type, and native byte order
+            or offsets != [offsets[0], offsets[0] + size, offsets[0] + 2 * size]
+            or points.ndim != 1 or not points.flags.c_contiguous):
+        return None
+    view = np.ndarray((points.shape[0], 3), dtype=dtype, buffer=points,
+                      offset=offsets[0], strides=(points.strides[0], size))
+    if not view.flags.aligned:
+        return None
+    view.flags.writeable = False
+    return view
 
 
 def xyz_dtype(points) -> np.dtype:

@@ -7,11 +7,12 @@ shifted 20 m in x (an odom/map frame), put in a base_link with the sensor 1.5 m 
 Each is segmented with the default parameters, then with the pose that describes it, and
 whether the 'not sensor-centred' check fires is shown.
 
-    python benchmarks/bench_sensor_frame.py
+    python benchmarks/bench_sensor_frame.py [--no-write]
 """
 
 from __future__ import annotations
 
+import argparse
 import sys
 
 import numpy as np
@@ -35,7 +36,10 @@ def cases(points):
     ]
 
 
-def main() -> int:
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    ap.add_argument('--no-write', action='store_true', help='print only, do not touch RESULTS.md')
+    args = ap.parse_args(argv)
     data = load_labeled_kitti()
     if data is None:
         print('the labelled scan is needed', file=sys.stderr)
@@ -56,6 +60,8 @@ def main() -> int:
     table = markdown_table(['cloud', 'F1 default params', 'F1 with the sensor_* pose',
                             "'not sensor-centred' warning"], rows)
     print(table)
+    if args.no_write:
+        return 0
     text = ('## Clouds not in the sensor frame (`bench_sensor_frame.py`)\n\n'
             + machine_markdown(command_line()) + '\n'
             + 'SemanticKITTI-labelled scan (123,389 points), default parameters, one cold '

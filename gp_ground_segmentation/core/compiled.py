@@ -1,8 +1,10 @@
 # SPDX-License-Identifier: Apache-2.0
 """numba kernels of the core beside their numpy references: compile one, run one.
 
-Each stage compiled here (grid pass, line growing, plateau state machine, structure look-ups,
-surface offsets) keeps a numpy reference that gives the same output, bit for bit (tests compare
+Each stage compiled through here (the valid points, grid pass, line growing, plateau state
+machine, length factors, outlier pass and its wide-terrain rule, label pass, structure
+selection and look-ups, surface offsets and rows, and smaller ones: ``GroundSegmenter.warm_up``
+lists them) keeps a numpy reference that gives the same output, bit for bit (tests compare
 them), used without numba or when a kernel fails. Kernels are cached on disk (``cache=True``,
 see gp_compiled.py for where) and release the GIL (``nogil``).
 

@@ -23,8 +23,10 @@ Ours, where the paper is silent:
   the default (False) is the paper's eq. 12.
 * d is clipped to [d_min, d_max] so that no candidate gets a vanishing or unbounded length scale;
   with d fixed per frame, L = a d exactly and the prefactor of k is independent of ``a``.
-* The prior mean is a constant m0, the median height of the training points (the paper's
-  eq. 6 uses a zero mean), so sigma_f describes deviations of the ground from a level plane at m0.
+* The prior mean is a constant m0 (the paper's eq. 6 uses a zero mean), so sigma_f describes
+  deviations of the ground from a level plane at m0: the segmenter passes the anchor height
+  (``prior_mean_at_anchor``, default), clipped to the candidates' range; without one,
+  FrameGP takes the median height of the training points.
 * Each training point may carry its own extra noise variance on top of sigma_n^2 (the anchor
   at r = 0, rejected outliers: see ``additions``).
 * theta is learned with L-BFGS-B on log theta within bounds, using the analytic gradient

@@ -88,8 +88,8 @@ class SegmenterParams:
         'which the candidate is a critical point', 0.005, 10.0)
     use_chord_slope_for_single_points: bool = _param(
         True, 'ours: a one-point line (a string of them is how Algorithm 1 sees a wall) gets the '
-        '|slope| of the steeper chord to its neighbouring candidates instead of none (read as '
-        'flat); steeper than zeta_b it does not train the GP, otherwise it sets its L')
+        '|slope| of the chord from the previous candidate of its segment instead of none (read '
+        'as flat); steeper than zeta_b it does not train the GP, otherwise it sets its L')
     use_elevated_plateaus: bool = _param(
         True, 'ours, not the paper\'s: candidates on an elevated plateau (see plateau_step_m) '
         'do not train the GP; false trains on them')

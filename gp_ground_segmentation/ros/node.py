@@ -30,8 +30,9 @@ Topics (relative names; remap e.g. ``-r points:=/velodyne_points``):
 Output QoS: a RELIABLE publisher matches both RELIABLE subscribers (RViz's and ros2 bag record's
 default) and BEST_EFFORT ones, whereas a BEST_EFFORT publisher is invisible to RELIABLE
 subscribers; depth 1 keeps the latest-wins rule downstream (a slow subscriber never makes us
-buffer old clouds); VOLATILE so no stale cloud is replayed to late joiners. All the topics
-accept ``qos_overrides`` (history, depth, reliability) from the parameter file.
+buffer old clouds); VOLATILE so no stale cloud is replayed to late joiners. The input and
+the three output topics accept ``qos_overrides`` (history, depth, reliability) from the
+parameter file; /diagnostics does not.
 
 Parameters: every ``SegmenterParams`` field and the node-only ones of ``config.NODE_PARAMS`` are
 declared with a ParameterDescriptor (description with units, numeric range). At start-up an

@@ -67,6 +67,27 @@ def kitti_msgs():
     return msgs
 
 
+@pytest.fixture(params=['compiled', 'numpy'])
+def split_path(request, monkeypatch):
+    """cloud.split_cloud (and so process_cloud's output clouds) through its compiled pass
+    (loaded first; its numpy twin is made to fail, so a test cannot pass on the twin) or
+    through the twin (the compiled pass taken away)."""
+    from gp_ground_segmentation.core import compiled
+    from gp_ground_segmentation.ros import cloud, pipeline
+    if request.param == 'numpy':
+        monkeypatch.setattr(cloud, '_split_rows_compiled', None)
+        return request.param
+    if not compiled.AVAILABLE:
+        pytest.skip('numba not installed')
+    pipeline.warm_up()  # queues the pass's compilation
+    assert compiled.wait(300.0) and not compiled.failed(cloud._split_rows_compiled)
+
+    def twin_must_not_run(*args):
+        raise AssertionError('the numpy twin ran instead of the compiled pass')
+    monkeypatch.setattr(cloud, '_split_rows', twin_must_not_run)
+    return request.param
+
+
 def assert_output_like_input(inp, out):
     """An output cloud keeps the input's header and field layout, as one unorganized row."""
     assert out.header.stamp == inp.header.stamp

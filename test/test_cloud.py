@@ -17,9 +17,11 @@ from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import Header
 from builtin_interfaces.msg import Time
 
+from gp_ground_segmentation.core import compiled
+from gp_ground_segmentation.ros import cloud as cloud_module
 from gp_ground_segmentation.ros.cloud import (
     POINTFIELD_DTYPES, CloudFormatError, cloud_xyz, fields_dtype, float32_cloud, make_cloud,
-    point_rows, read_cloud, subset_cloud, xyz_dtype)
+    point_rows, read_cloud, split_cloud, subset_cloud, xyz_dtype)
 
 DATA = Path(__file__).resolve().parents[1].parent / 'shared' / 'data'
 STRUCT_CHARS = {1: 'b', 2: 'B', 3: 'h', 4: 'H', 5: 'i', 6: 'I', 7: 'f', 8: 'd'}
@@ -362,6 +364,130 @@ def test_subset_cloud_bad_selection():
         subset_cloud(msg, [3])
     with pytest.raises(IndexError):
         subset_cloud(msg, [-1])
+
+
+# --------------------------------------------------------------------------- split_cloud
+
+def assert_split_is_subsets(msg, ground, valid):
+    """split_cloud's messages are subset_cloud's of the two masks, byte for byte."""
+    ground_msg, obstacle_msg, counts = split_cloud(msg, ground, valid)
+    obstacles = valid & ~ground
+    for got, mask in ((ground_msg, ground), (obstacle_msg, obstacles)):
+        expected = subset_cloud(msg, mask)
+        assert got == expected
+        assert bytes(got.data) == bytes(expected.data)
+        assert type(got) is type(expected) and type(got.data) is array.array
+        assert got.header is not msg.header and got.fields[0] is not msg.fields[0]
+    assert counts == (int(ground.sum()), int(obstacles.sum()), int((~valid).sum()))
+    assert all(type(c) is int for c in counts)
+    return counts
+
+
+def _run_masks(rng, n, mean_run):
+    """ground, valid (n,) bool with runs of about mean_run points of each class."""
+    classes = np.repeat(rng.integers(0, 3, n), rng.geometric(1 / mean_run, n))[:n]
+    return classes == 1, classes >= 1
+
+
+def test_split_cloud_organized_with_row_padding(split_path):
+    height, width, step, row_step = 4, 5, 12, 5 * 12 + 7
+    rng = np.random.default_rng(4)
+    msg = cloud(XYZ, step, rng.integers(0, 256, height * row_step + 3, dtype=np.uint8), width,
+                height=height, row_step=row_step)
+    for seed in range(5):
+        ground, valid = _run_masks(np.random.default_rng(seed), height * width, 3)
+        assert_split_is_subsets(msg, ground, valid)
+
+
+@pytest.mark.parametrize('step', [13, 12, 16, 17, 32])
+@pytest.mark.parametrize('bigendian', [False, True])
+def test_split_cloud_random_masks_and_layouts(split_path, step, bigendian):
+    """Short and long runs (word steps across a run's end), unaligned point_step (13, 17), and
+    masks at every byte offset from an 8-byte boundary (views into a longer mask)."""
+    rng = np.random.default_rng(step + 100 * bigendian)
+    for n, mean_run in ((1, 1), (7, 2), (9, 20), (64, 8), (1000, 1.5), (3000, 60), (3000, 400)):
+        fields = [pf('x', 0, 7), pf('y', 4, 7), pf('z', 8, 7)]
+        msg = cloud(fields, step, rng.integers(0, 256, n * step, dtype=np.uint8), n,
+                    bigendian=bigendian, dense=bool(n % 2))
+        ground, valid = _run_masks(rng, n, mean_run)
+        assert_split_is_subsets(msg, ground, valid)
+        assert_split_is_subsets(msg, rng.random(n) < 0.5, rng.random(n) < 0.9)
+        for shift in range(1, 8):
+            longer = np.zeros((2, n + 8), dtype=bool)
+            longer[0, shift:shift + n], longer[1, 8 - shift:8 - shift + n] = ground, valid
+            assert_split_is_subsets(msg, longer[0, shift:shift + n],
+                                    longer[1, 8 - shift:8 - shift + n])
+
+
+def test_split_cloud_all_ground_all_invalid_and_empty(split_path):
+    n, step = 50, 16
+    msg = cloud(XYZ, step, (np.arange(n * step) % 251).astype(np.uint8), n)
+    ones, zeros = np.ones(n, bool), np.zeros(n, bool)
+    assert assert_split_is_subsets(msg, ones, ones) == (n, 0, 0)  # all ground
+    assert assert_split_is_subsets(msg, zeros, ones) == (0, n, 0)  # all obstacles
+    assert assert_split_is_subsets(msg, zeros, zeros) == (0, 0, n)  # all invalid
+    for empty in (cloud(XYZ, step, b'', 0), cloud(XYZ, step, b'', 5, height=0),
+                  cloud(XYZ, 12, b'', 0, height=3)):
+        none = np.zeros(0, bool)
+        assert assert_split_is_subsets(empty, none, none) == (0, 0, 0)
+
+
+def test_split_cloud_counts_a_ground_point_that_is_not_valid(split_path):
+    """Masks that do not add up (an invalid point labelled ground): the messages are still
+    subset_cloud's, and the counts show it (ground + obstacles + invalid > points)."""
+    n = 40
+    msg = cloud(XYZ, 12, (np.arange(n * 12) % 256).astype(np.uint8), n)
+    ground = np.zeros(n, bool)
+    ground[:20] = True
+    valid = np.ones(n, bool)
+    valid[[0, 5, 30]] = False  # 0 and 5 are ground too
+    assert assert_split_is_subsets(msg, ground, valid) == (20, 19, 3)
+
+
+def test_split_cloud_bad_masks():
+    msg = cloud(XYZ, 12, bytes(36), 3)
+    for ground, valid in ((np.ones(4, bool), np.ones(3, bool)),
+                          (np.ones(3, bool), np.ones((3, 1), bool)),
+                          (np.ones(3, int), np.ones(3, bool))):
+        with pytest.raises(ValueError, match='mask'):
+            split_cloud(msg, ground, valid)
+    with pytest.raises(CloudFormatError):
+        split_cloud(cloud(XYZ, 12, bytes(35), 3), np.ones(3, bool), np.ones(3, bool))
+
+
+def test_split_rows_twin_is_the_compiled_pass():
+    """_split_rows (numpy) and _split_rows_loop (numba) write the same rows and return the same
+    counts, also when an output is shorter (cut) or longer (last rows untouched) than its
+    selection and when the masks start off an 8-byte boundary."""
+    if not compiled.AVAILABLE:
+        pytest.skip('numba not installed')
+    rng = np.random.default_rng(11)
+    for trial in range(60):
+        n = int(rng.integers(0, 400))
+        step = int(rng.integers(1, 21))
+        rows = rng.integers(0, 256, (n, step), dtype=np.uint8)
+        if trial % 3 == 0:
+            ground, valid = rng.random(n) < 0.4, rng.random(n) < 0.8
+        else:
+            ground, valid = _run_masks(rng, n, float(rng.choice([2, 9, 40])))
+        shift = int(rng.integers(0, 8))
+        longer = np.zeros((2, n + 8), dtype=bool)
+        longer[0, shift:shift + n], longer[1, shift:shift + n] = ground, valid
+        ground, valid = longer[0, shift:shift + n], longer[1, shift:shift + n]
+        sizes = [int(ground.sum()), int((valid & ~ground).sum())]
+        sizes = [max(k + int(rng.integers(-3, 4)), 0) if trial % 2 else k for k in sizes]
+        results = []
+        for split in (cloud_module._split_rows, cloud_module._split_rows_compiled):
+            outs = [np.full((k, step), 0xAB, dtype=np.uint8) for k in sizes]
+            counts = split(rows, ground, valid, *outs)
+            results.append((tuple(int(c) for c in counts), outs))
+        (counts, outs), (counts_c, outs_c) = results
+        assert counts == counts_c
+        assert counts == (int(ground.sum()), int((valid & ~ground).sum()), int((~valid).sum()))
+        for a, b in zip(outs, outs_c):
+            np.testing.assert_array_equal(a, b)
+        k = min(sizes[0], counts[0])
+        np.testing.assert_array_equal(outs[0][:k], rows[ground][:k])
 
 
 # --------------------------------------------------------------------------- malformed clouds

@@ -109,6 +109,24 @@ def test_partition_header_fields_and_diagnostics(kitti_msgs, ros_harness):
     assert float(values['sigma_f']) > 0
 
 
+def test_worker_warms_up_the_segmenter_then_the_output_pass(kitti_msgs, ros_harness,
+                                                            monkeypatch):
+    """Before the first frame the worker loads the segmenter's compiled stages, then queues
+    the output clouds' pass (pipeline.warm_up), a frame's order."""
+    import gp_ground_segmentation.ros.node as node_module
+    calls = []
+    real = (GroundSegmenter.warm_up, node_module.warm_up_outputs, node_module.process_cloud)
+    monkeypatch.setattr(GroundSegmenter, 'warm_up',
+                        lambda self: (calls.append('segmenter'), real[0](self))[1])
+    monkeypatch.setattr(node_module, 'warm_up_outputs',
+                        lambda: (calls.append('outputs'), real[1]())[1])
+    monkeypatch.setattr(node_module, 'process_cloud',
+                        lambda *a, **kw: (calls.append('frame'), real[2](*a, **kw))[1])
+    h = ros_harness(node_kwargs=_fast())
+    h.publish_and_wait(kitti_msgs[0])
+    assert calls[:3] == ['segmenter', 'outputs', 'frame']
+
+
 def test_stale_before_input_then_error_on_bad_input_then_recovers(kitti_msgs, ros_harness):
     """No input -> STALE; malformed clouds -> ERROR naming the problem, no output; the next good
     frame is processed normally."""

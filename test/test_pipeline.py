@@ -13,7 +13,8 @@ from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import Header
 
 from gp_ground_segmentation import GroundSegmenter, SegmenterParams
-from gp_ground_segmentation.ros.cloud import CloudFormatError, make_cloud, point_rows
+from gp_ground_segmentation.ros.cloud import (CloudFormatError, make_cloud, point_rows,
+                                              split_cloud, subset_cloud)
 from gp_ground_segmentation.ros.diagnostics import ProcessingWindow, diagnostics_status
 from gp_ground_segmentation.ros.pipeline import (STAGES, FrameOutput, add_surface, frame_timings,
                                                  process_cloud)
@@ -176,10 +177,90 @@ class _Liar:
         return SegmentationResult(ground, valid, np.zeros(n), Hyperparameters(1.0, 1.0, 0.1))
 
 
-def test_inconsistent_split_is_refused():
+def test_inconsistent_split_is_refused(split_path):
     msg = _msg(_scene(100).astype(np.float32))
-    with pytest.raises(RuntimeError, match='inconsistent split'):
+    # 50 ground (point 0 among them) + 50 valid non-ground + 1 invalid (point 0)
+    with pytest.raises(RuntimeError,
+                       match=r'^inconsistent split: 50 ground \+ 50 obstacles \+ 1 invalid '
+                             r'!= 100 points$'):
         process_cloud(msg, _Liar())
+
+
+def test_bag_frames_output_clouds_are_the_subsets_of_the_masks(kitti_msgs, split_path):
+    """process_cloud's clouds (one split_cloud pass) are subset_cloud's of the result's ground
+    and obstacle masks, message and bytes; split_cloud on the bag's layout with other masks
+    too; and a bad mask on a bag frame is refused with the counts."""
+    seg = GroundSegmenter()
+    rng = np.random.default_rng(2)
+    for msg in kitti_msgs:
+        out = process_cloud(msg, seg)
+        res = out.result
+        for got, mask in ((out.ground, res.ground_mask), (out.obstacles, res.obstacle_mask)):
+            expected = subset_cloud(msg, mask)
+            assert got == expected and bytes(got.data) == bytes(expected.data)
+        n = res.valid_mask.size
+        ground, valid = rng.random(n) < 0.5, rng.random(n) < 0.95
+        got = split_cloud(msg, ground, valid)
+        for message, mask in zip(got, (ground, valid & ~ground)):
+            expected = subset_cloud(msg, mask)
+            assert message == expected and bytes(message.data) == bytes(expected.data)
+    n = kitti_msgs[0].width * kitti_msgs[0].height
+    with pytest.raises(RuntimeError, match=rf'^inconsistent split: {n // 2} ground \+ '
+                                           rf'{n - n // 2} obstacles \+ 1 invalid != '
+                                           rf'{n} points$'):
+        process_cloud(kitti_msgs[0], _Liar())
+
+
+def test_pipeline_warm_up_queues_the_output_pass(tmp_path):
+    """After the node's warm-up (GroundSegmenter.warm_up(), then pipeline.warm_up()), bag
+    frames ask numba for no signature it has not queued, the output clouds' pass included (a
+    missed one compiles only once a frame needs it: numpy-twin frames meanwhile), and every
+    queued kernel compiles. In a fresh interpreter with an empty numba cache (as
+    test_warm_up_queues_every_compiled_stage_a_frame_needs)."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+    from gp_ground_segmentation.core import compiled
+    from conftest import BAG
+    if not compiled.AVAILABLE:
+        pytest.skip('numba not installed')
+    if not BAG.is_dir():
+        pytest.skip(f'real data not found: {BAG}')
+    script = f"""if True:
+        from rclpy.serialization import deserialize_message
+        from rosbags.highlevel import AnyReader
+        from sensor_msgs.msg import PointCloud2
+        from gp_ground_segmentation import GroundSegmenter
+        from gp_ground_segmentation.core import compiled
+        from gp_ground_segmentation.ros import cloud, pipeline
+        with AnyReader([__import__('pathlib').Path({str(BAG)!r})]) as reader:
+            conns = [c for c in reader.connections if c.topic == '/velodyne_points']
+            msgs = [deserialize_message(raw, PointCloud2)
+                    for _, _, raw in reader.messages(connections=conns)][:2]
+        seg = GroundSegmenter()
+        seg.warm_up()
+        pipeline.warm_up()
+        queued = set(compiled._queued)
+        for msg in msgs:
+            pipeline.process_cloud(msg, seg, publish_ground_surface=True,
+                                   add_height_above_ground_field=True)
+            pipeline.process_cloud(msg, seg)
+        for kernel, signature in set(compiled._queued) - queued:
+            print('MISSING', kernel.py_func.__name__, signature)
+        print('WAITED', compiled.wait(240.0))
+        print('SPLIT', len(cloud._split_rows_compiled.signatures))
+        for kernel in compiled._failed:
+            print('FAILED', kernel.py_func.__name__)
+        """
+    root = Path(__file__).resolve().parents[1]
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path))
+    out = subprocess.run([sys.executable, '-c', script], cwd=root, capture_output=True,
+                         text=True, timeout=400, env=env)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert 'MISSING' not in out.stdout, out.stdout
+    assert 'WAITED True' in out.stdout and 'FAILED' not in out.stdout, out.stdout
+    assert 'SPLIT 1' in out.stdout, out.stdout
 
 
 # --- diagnostics ------------------------------------------------------------------------------

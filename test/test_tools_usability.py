@@ -90,5 +90,7 @@ def test_replay_loads_the_compiled_kernel_before_the_first_frame(tmp_path, monke
                         lambda: (calls.append('warm_up'), real_warm_up())[1])
     monkeypatch.setattr(pipeline, 'process_cloud',
                         lambda *a, **kw: (calls.append('frame'), real_process(*a, **kw))[1])
+    real_outputs = pipeline.warm_up  # the output clouds' compiled pass, queued after the GP
+    monkeypatch.setattr(pipeline, 'warm_up', lambda: (calls.append('outputs'), real_outputs())[1])
     assert main(['replay', str(SAMPLE), str(tmp_path / 'out'), '--max-frames', '2']) == 0
-    assert calls == ['warm_up', 'frame', 'frame']
+    assert calls == ['warm_up', 'outputs', 'frame', 'frame']

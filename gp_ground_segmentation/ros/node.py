@@ -73,7 +73,7 @@ from .config import (NODE_NAME, NODE_PARAMS, ParameterConfigError, all_param_spe
 from .diagnostics import ProcessingWindow, diagnostics_array, diagnostics_status
 from ..core.allocator import keep_freed_memory
 from ..core.params import SegmenterParams
-from .pipeline import OUTPUT_SWITCHES, add_surface, process_cloud
+from .pipeline import OUTPUT_SWITCHES, add_surface, process_cloud, warm_up as warm_up_outputs
 from .shutdown import QuietShutdown, shutdown_context
 from ..core.segmenter import GroundSegmenter
 from ..core.sensor_frame import NOT_CENTRED
@@ -272,6 +272,10 @@ class GroundSegmentationNode(Node):
                 warm_up()  # load the compiled GP kernel before the first cloud arrives
         except Exception as exc:  # noqa: BLE001 - the segmenter now uses numpy; say so once
             self.get_logger().warning(f'compiled GP kernel unavailable, using numpy: {exc}')
+        try:
+            warm_up_outputs()  # queue the output clouds' compiled pass, after the segmenter's
+        except Exception as exc:  # noqa: BLE001 - its numpy twin builds the same clouds
+            self.get_logger().warning(f'output clouds pass unavailable, using numpy: {exc}')
         while True:
             with self._cond:
                 while not self._slot and not self._stopping:

@@ -5,11 +5,14 @@ This is the single code path shared by the ROS node and the offline bag replay, 
 publish exactly the same clouds and report the same timings. Nothing here needs ``rclpy.init()``.
 
 Output clouds keep the input header (stamp, frame_id), fields, point_step and byte order, and
-every selected point's bytes unchanged (``cloud.subset_cloud``), so intensity/ring/time survive.
+every selected point's bytes unchanged (``cloud.split_cloud``: ``cloud.subset_cloud`` of the
+ground and obstacle masks, both built in one compiled pass), so intensity/ring/time survive.
 Invalid points (NaN/Inf or the (0, 0, 0) no-return value) go to neither output; they are counted
-in ``result.num_invalid``. Before returning, the split is checked: ground + obstacles + invalid
-must equal the input point count with no point in both, otherwise ``RuntimeError`` is raised and
-nothing should be published (never a split that silently misses points).
+in ``result.num_invalid``. Before returning, the split is checked (with the pass's counts):
+ground + obstacles + invalid must equal the input point count with no point in both, otherwise
+``RuntimeError`` is raised and nothing should be published (never a split that silently misses
+points). :func:`warm_up` queues that pass's compilation; the node and bag replay call it after
+the segmenter's warm-up.
 
 Optional outputs (node parameters of the same names): ``publish_ground_surface`` adds the GP
 ground surface (``surface_cloud``: x, y, z, z_std FLOAT32 at the supported prediction points,
@@ -20,16 +23,19 @@ field (z - z_hat, m) to the ground and obstacle clouds after every original byte
 from __future__ import annotations
 
 import time
+import types
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from .cloud import cloud_xyz, float32_cloud, read_cloud, subset_cloud, with_float32_field
+from .cloud import (FLOAT32, cloud_xyz, float32_cloud, read_cloud, split_cloud,
+                    with_float32_field)
 from ..core.segmenter import SegmentationResult
 from ..core.sensor_frame import cloud_notes
 
 __all__ = ['FrameOutput', 'process_cloud', 'add_surface', 'input_warnings', 'STAGES',
-           'frame_timings', 'surface_cloud', 'HEIGHT_FIELD', 'OUTPUT_SWITCHES', 'SURFACE_FIELDS']
+           'frame_timings', 'surface_cloud', 'warm_up', 'HEIGHT_FIELD', 'OUTPUT_SWITCHES',
+           'SURFACE_FIELDS']
 
 # Node parameters (config.NODE_PARAMS) that switch the optional outputs: process_cloud keywords
 OUTPUT_SWITCHES = ('publish_ground_surface', 'add_height_above_ground_field')
@@ -107,22 +113,22 @@ def process_cloud(msg, segmenter, *, publish_ground_surface: bool = False,
     t2 = time.perf_counter()
     n = xyz.shape[0]
     ground_mask = np.asarray(result.ground_mask, dtype=bool)
-    obstacle_mask = np.asarray(result.obstacle_mask, dtype=bool)
-    if ground_mask.shape != (n,) or obstacle_mask.shape != (n,):
+    valid_mask = np.asarray(result.valid_mask, dtype=bool)
+    if ground_mask.shape != (n,) or valid_mask.shape != (n,):
         raise RuntimeError(f'segmenter returned masks of shape {ground_mask.shape}, '
                            f'expected ({n},)')
-    n_ground = int(np.count_nonzero(ground_mask))
-    n_obstacles = int(np.count_nonzero(obstacle_mask))
-    if np.any(ground_mask & obstacle_mask) or n_ground + n_obstacles + result.num_invalid != n:
+    # obstacles: result.obstacle_mask (valid & ~ground), so no point can be in both outputs;
+    # the counts add up unless a ground point is invalid
+    ground, obstacles, (n_ground, n_obstacles, n_invalid) = split_cloud(msg, ground_mask,
+                                                                        valid_mask)
+    if n_ground + n_obstacles + n_invalid != n:
         raise RuntimeError(
             f'inconsistent split: {n_ground} ground + {n_obstacles} obstacles + '
-            f'{result.num_invalid} invalid != {n} points')
-    ground = subset_cloud(msg, ground_mask)
-    obstacles = subset_cloud(msg, obstacle_mask)
+            f'{n_invalid} invalid != {n} points')
     if add_height_above_ground_field:
         height = result.height_above_ground
         ground = with_float32_field(ground, HEIGHT_FIELD, height[ground_mask])
-        obstacles = with_float32_field(obstacles, HEIGHT_FIELD, height[obstacle_mask])
+        obstacles = with_float32_field(obstacles, HEIGHT_FIELD, height[result.obstacle_mask])
     t3 = time.perf_counter()
     warnings = input_warnings(msg, result, xyz, getattr(segmenter, 'params', None))
     out = FrameOutput(ground=ground, obstacles=obstacles, result=result,
@@ -131,6 +137,20 @@ def process_cloud(msg, segmenter, *, publish_ground_surface: bool = False,
     if publish_ground_surface:
         add_surface(out, msg)
     return out
+
+
+def warm_up() -> None:
+    """Queue the compilation (or the load from numba's cache) of the pass that builds the two
+    output clouds (``cloud.split_cloud``) on the background compiler (core/compiled.py), for the
+    argument types of every frame: call it after ``GroundSegmenter.warm_up()`` (a frame needs
+    the segmenter's stages first); until it is ready the pass's numpy twin builds the same
+    clouds. test_pipeline_warm_up_queues_the_output_pass checks nothing is missed."""
+    point = types.SimpleNamespace
+    msg = point(header=None, height=1, width=2, is_bigendian=False, point_step=12, row_step=24,
+                fields=[point(name=c, offset=4 * i, datatype=FLOAT32, count=1)
+                        for i, c in enumerate('xyz')],
+                data=bytes(24), is_dense=True)
+    split_cloud(msg, np.array([True, False]), np.array([True, True]))
 
 
 def add_surface(out: FrameOutput, msg) -> FrameOutput:

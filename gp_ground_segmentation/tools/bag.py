@@ -452,13 +452,20 @@ def load_segmenter_params(params_file: Optional[str]):
 
 def warm_up(log=None) -> None:
     """Load the compiled GP kernel before the first frame, as the node's worker does, so the
-    first frame's timing (and its diagnostics) is not that of numba's compile/cache load."""
+    first frame's timing (and its diagnostics) is not that of numba's compile/cache load; then
+    queue the output clouds' compiled pass (``pipeline.warm_up``)."""
     from ..core import gp_compiled
+    from ..ros import pipeline
     try:
         gp_compiled.warm_up()
     except Exception as exc:  # noqa: BLE001 - the numpy path still works
         if log:
             log(f'compiled GP kernel unavailable ({_one_line(exc)}); the first frame loads it')
+    try:
+        pipeline.warm_up()
+    except Exception as exc:  # noqa: BLE001 - its numpy twin builds the same clouds
+        if log:
+            log(f'output clouds pass unavailable ({_one_line(exc)}); using numpy')
 
 
 def _storage_plugin(storage: str):

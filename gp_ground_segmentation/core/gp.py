@@ -278,14 +278,30 @@ def _hpsolb(n, t, order, iheap):
 def length_scale_factors(slope, density_rel, *, slope_floor, slope_ceiling,
                          density_in_flat_branch=True, d_min=0.05, d_max=50.0):
     """d_i = log(1/g_i) / rho_i with the guards listed in the module docstring."""
+    inverse_slope, flat = slope_terms(slope, slope_floor, slope_ceiling)
+    return factors_from_logs(np.log(inverse_slope), density_rel, flat,
+                             flat_value=float(np.log(1.0 / slope_floor)),
+                             density_in_flat_branch=density_in_flat_branch, d_min=d_min,
+                             d_max=d_max)
+
+
+def slope_terms(slope, slope_floor, slope_ceiling):
+    """(1 / g, flat) of :func:`length_scale_factors`: g = |slope| clipped to [slope_floor,
+    slope_ceiling] (a NaN slope is flat, +inf steep); flat where |slope| < slope_floor."""
     slope = np.asarray(slope, dtype=np.float64)
     raw = np.where(np.isnan(slope), 0.0, np.abs(slope))  # no slope = flat; +inf = steep
     # np.minimum(np.maximum()) is np.clip without its Python-level overhead (same values)
-    g = np.minimum(np.maximum(raw, slope_floor), slope_ceiling)
-    rho = np.where(density_rel > 0, density_rel, 1.0)
-    d = np.log(1.0 / g) / rho
+    return 1.0 / np.minimum(np.maximum(raw, slope_floor), slope_ceiling), raw < slope_floor
+
+
+def factors_from_logs(log_inverse_slope, density_rel, flat, *, flat_value,
+                      density_in_flat_branch, d_min, d_max):
+    """The rest of :func:`length_scale_factors` from log(1 / g): divided by rho~ (1 where it
+    is not positive), ``flat_value`` = log(1 / slope_floor) on flat bins unless
+    ``density_in_flat_branch``, clipped to [d_min, d_max] (NaN stays NaN)."""
+    d = log_inverse_slope / np.where(density_rel > 0, density_rel, 1.0)
     if not density_in_flat_branch:
-        d = np.where(raw < slope_floor, np.log(1.0 / slope_floor), d)
+        d = np.where(flat, flat_value, d)
     return np.minimum(np.maximum(d, d_min), d_max)
 
 

@@ -284,12 +284,18 @@ def relative_density(density: np.ndarray, candidate_r: np.ndarray, mask: np.ndar
     Entries outside ``mask`` or in a ring with no masked candidate get 1.
     """
     out = np.ones_like(density, dtype=np.float64)
-    usable = mask & (density > 0) & np.isfinite(candidate_r) & (candidate_r > 0)
+    usable = usable_bins(density, candidate_r, mask)
     if not usable.any():
         return out
     out[usable] = np.exp(ring_log_deviation(np.log(candidate_r[usable]),
                                             np.log(density[usable]), np.log(ring_ratio)))
     return out
+
+
+def usable_bins(density, candidate_r, mask) -> np.ndarray:
+    """The bins :func:`relative_density` compares: in ``mask``, with rho~ > 0 and a finite
+    range > 0."""
+    return mask & (density > 0) & np.isfinite(candidate_r) & (candidate_r > 0)
 
 
 def ring_log_deviation(log_r: np.ndarray, log_rho: np.ndarray, log_ratio: float) -> np.ndarray:

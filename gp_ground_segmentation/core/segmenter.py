@@ -76,8 +76,10 @@ from threadpoolctl import ThreadpoolController
 
 from . import additions
 from . import compiled, gp_compiled
-from .gp import FrameGP, GPSolution, GroundAnchor, length_scale_factors, resolve_backend
-from .grid import RING_RATIO, RadialGrid, build_grid, relative_density, ring_log_deviation
+from .gp import (FrameGP, GPSolution, GroundAnchor, factors_from_logs, length_scale_factors,
+                 resolve_backend, slope_terms)
+from .grid import (RING_RATIO, RadialGrid, build_grid, relative_density, ring_log_deviation,
+                   usable_bins)
 from .lines import LineSegments, extract_lines
 from .params import SegmenterParams
 from .sensor_frame import ground_height_in_cloud_frame, to_levelled_frame
@@ -536,10 +538,9 @@ def _usable_bins_loop(density, candidate_r, training, slope, slope_floor, slope_
 
 def _usable_bins_reference(density, candidate_r, training, slope, slope_floor, slope_ceiling):
     """numpy twin of :func:`_usable_bins_loop` (run only while the pass compiles)."""
-    usable = training & (density > 0) & np.isfinite(candidate_r) & (candidate_r > 0)
-    raw = np.where(np.isnan(slope), 0.0, np.abs(slope))
-    return (usable, candidate_r[usable], density[usable],
-            1.0 / np.minimum(np.maximum(raw, slope_floor), slope_ceiling), raw < slope_floor)
+    usable = usable_bins(density, candidate_r, training)
+    inverse_slope, flat = slope_terms(slope, slope_floor, slope_ceiling)
+    return usable, candidate_r[usable], density[usable], inverse_slope, flat
 
 
 def _ring_deviation_loop(log_r, log_rho, log_ratio):
@@ -601,10 +602,9 @@ def _raw_length_factors_reference(log_inverse_slope, density_rel, usable, flat, 
     """numpy twin of :func:`_raw_length_factors_loop` (run only while the pass compiles)."""
     rho = np.ones(flat.shape)
     rho[usable] = density_rel
-    d = log_inverse_slope / np.where(rho > 0, rho, 1.0)
-    if not density_in_flat_branch:
-        d = np.where(flat, log_flat, d)
-    d = np.minimum(np.maximum(d, d_min), d_max)
+    d = factors_from_logs(log_inverse_slope, rho, flat, flat_value=log_flat,
+                          density_in_flat_branch=density_in_flat_branch, d_min=d_min,
+                          d_max=d_max)
     return d, np.where(training, d, 1.0)
 
 

@@ -218,6 +218,10 @@ def test_cloud_xyz_view_only_where_the_layout_allows_it():
     out = cloud_xyz(read_cloud(viewed), dtype=np.float64, copy=False)
     assert out.dtype == np.float64 and out.flags.writeable
     np.testing.assert_array_equal(out, xyz)
+    # no points: (0, 3) whatever the offsets (an empty buffer holds no view at an offset)
+    for offsets, step in (([0, 4, 8], 16), ([4, 8, 12], 20), ([16, 20, 24], 32)):
+        empty = cloud([pf(c, o, 7) for c, o in zip('xyz', offsets)], step, b'', 0)
+        assert cloud_xyz(read_cloud(empty), dtype=None, copy=False).shape == (0, 3)
 
 
 def test_data_as_bytes_and_list_and_longer_than_needed():

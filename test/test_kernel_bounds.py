@@ -5,8 +5,11 @@ numba does not check indices unless told to: an index computed from a value nobo
 (a NaN range, a point exactly at the sensor, 1e30 m, a grid of 8 x 4 or 1440 x 512 cells) would
 read or write another array's memory, silently. Here a fresh interpreter compiles every kernel
 with ``NUMBA_BOUNDSCHECK=1`` (and an empty cache, so nothing unchecked is loaded) and runs
-segment(), the ground surface's rows, heights and std on such clouds: an out-of-range index
-then raises IndexError instead. About 40 s (the compilation), once per test run.
+segment() (plain and with details), the ground surface's rows, heights and std, and the node's
+output-cloud pass on such clouds: an out-of-range index then raises IndexError instead (or, in
+the GP step, which falls back to numpy on any error, switches the segmenter's backend: also a
+failure here). Every numba kernel of the package must have run compiled at least once.
+About 40-60 s (the compilation), once per test run.
 """
 
 import os
@@ -56,14 +59,50 @@ SCRIPT = """if True:
         for name, pts in clouds():
             for _ in range(2):  # cold, then warm-started
                 with np.errstate(all='ignore'):
-                    result = seg.segment(pts)
+                    result = seg.segment(pts, details=_ == 1)
                     surface = result.ground_surface
                     surface.points()
                     surface.height_at(pts[:10, 0].astype(float), pts[:10, 1].astype(float))
                     surface.z_std
+                # the GP step falls back to numpy on any error, an IndexError included, and
+                # says why in the frame's GP (details) or by the segmenter's backend
+                error = result.details.gp.compiled_error if result.details else None
+                if seg.backend != 'numba' or error is not None:
+                    print('GP FELL BACK', name, error)
+                    seg = GroundSegmenter(params)
         print('DONE', params.num_segments, params.num_bins)
+
+    # the output clouds' pass: odd point steps, unaligned data, masks of every kind
+    from sensor_msgs.msg import PointCloud2
+    from gp_ground_segmentation.ros import cloud as ros_cloud, pipeline
+    pipeline.warm_up()
+    compiled.wait(300.0)
+    for step in (12, 13, 16, 17, 32):
+        for n in (0, 1, 7, 1000):
+            dtype = np.dtype({'names': ['x', 'y', 'z'], 'formats': ['<f4'] * 3,
+                              'offsets': [0, 4, 8], 'itemsize': step})
+            msg = ros_cloud.make_cloud(None, np.zeros(n, dtype), PointCloud2)
+            msg.data = bytes(1) + bytes(msg.data)  # unaligned start, one byte skipped
+            msg.data = bytes(msg.data)[1:]
+            for kind in range(4):
+                ground = rng.random(n) < (0.0, 1.0, 0.5, 0.97)[kind]
+                valid = ground | (rng.random(n) < 0.5)
+                ros_cloud.split_cloud(msg, ground, valid)
+    print('SPLIT FINISHED')
     for kernel in compiled._failed:
         print('FAILED', kernel.py_func.__name__)
+
+    # every kernel of the package ran compiled (with the index checks) at least once
+    import importlib, pkgutil
+    import gp_ground_segmentation
+    from numba.core.registry import CPUDispatcher
+    for info in pkgutil.walk_packages(gp_ground_segmentation.__path__,
+                                      'gp_ground_segmentation.'):
+        module = importlib.import_module(info.name)
+        for obj in vars(module).values():
+            if (isinstance(obj, CPUDispatcher) and obj.py_func.__module__ == info.name
+                    and not obj.signatures):
+                print('NEVER COMPILED', info.name, obj.py_func.__name__)
     """
 
 
@@ -78,3 +117,5 @@ def test_kernels_index_inside_their_arrays_on_adversarial_clouds(tmp_path):
     assert out.returncode == 0, out.stderr[-3000:]
     assert out.stdout.count('DONE') == 3 and 'WAITED False' not in out.stdout, out.stdout
     assert 'FAILED' not in out.stdout, out.stdout  # else a numpy twin ran: proves nothing
+    assert 'GP FELL BACK' not in out.stdout and 'SPLIT FINISHED' in out.stdout, out.stdout
+    assert 'NEVER COMPILED' not in out.stdout, out.stdout

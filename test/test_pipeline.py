@@ -213,9 +213,10 @@ def test_bag_frames_output_clouds_are_the_subsets_of_the_masks(kitti_msgs, split
 
 def test_pipeline_warm_up_queues_the_output_pass(tmp_path):
     """After the node's warm-up (GroundSegmenter.warm_up(), then pipeline.warm_up()), bag
-    frames ask numba for no signature it has not queued, the output clouds' pass included (a
-    missed one compiles only once a frame needs it: numpy-twin frames meanwhile), and every
-    queued kernel compiles. In a fresh interpreter with an empty numba cache (as
+    frames (and the same points as x, y, z-only, 22-byte and FLOAT64 clouds) ask numba for no
+    signature it has not queued, the output clouds' pass included (a missed one compiles only
+    once a frame needs it: numpy-twin frames meanwhile), and every queued kernel compiles. In
+    a fresh interpreter with an empty numba cache (as
     test_warm_up_queues_every_compiled_stage_a_frame_needs)."""
     import os
     import subprocess
@@ -238,6 +239,18 @@ def test_pipeline_warm_up_queues_the_output_pass(tmp_path):
             conns = [c for c in reader.connections if c.topic == '/velodyne_points']
             msgs = [deserialize_message(raw, PointCloud2)
                     for _, _, raw in reader.messages(connections=conns)][:2]
+        # the other layouts drivers publish: x, y, z only (a read-only C view in the node),
+        # 22-byte points (rows not 4-byte aligned: copied to columns), FLOAT64 x, y, z
+        import numpy as np
+        xyz = cloud.cloud_xyz(cloud.read_cloud(msgs[0]), None)
+        for dtype in (np.dtype([('x', '<f4'), ('y', '<f4'), ('z', '<f4')]),
+                      np.dtype({{'names': ['x', 'y', 'z', 'intensity', 'ring'],
+                                'formats': ['<f4'] * 4 + ['<u2'],
+                                'offsets': [0, 4, 8, 12, 16], 'itemsize': 22}}),
+                      np.dtype([('x', '<f8'), ('y', '<f8'), ('z', '<f8')])):
+            points = np.zeros(len(xyz), dtype)
+            points['x'], points['y'], points['z'] = xyz.T
+            msgs.append(cloud.make_cloud(msgs[0].header, points, PointCloud2))
         seg = GroundSegmenter()
         seg.warm_up()
         pipeline.warm_up()

@@ -84,13 +84,19 @@ def test_eval_of_an_empty_scan_is_an_error(tmp_path, capsys):
 def test_replay_loads_the_compiled_kernel_before_the_first_frame(tmp_path, monkeypatch):
     import gp_ground_segmentation.core.gp_compiled as gp_compiled
     import gp_ground_segmentation.ros.pipeline as pipeline
+    from gp_ground_segmentation.core.segmenter import GroundSegmenter
     calls = []
     real_warm_up, real_process = gp_compiled.warm_up, pipeline.process_cloud
     monkeypatch.setattr(gp_compiled, 'warm_up',
-                        lambda: (calls.append('warm_up'), real_warm_up())[1])
+                        lambda **kw: (calls.append('warm_up'), real_warm_up(**kw))[1])
+    real_segmenter_warm_up = GroundSegmenter.warm_up  # every compiled stage a frame needs
+    monkeypatch.setattr(GroundSegmenter, 'warm_up', lambda self: (
+        calls.append('segmenter'), real_segmenter_warm_up(self))[1])
     monkeypatch.setattr(pipeline, 'process_cloud',
                         lambda *a, **kw: (calls.append('frame'), real_process(*a, **kw))[1])
     real_outputs = pipeline.warm_up  # the output clouds' compiled pass, queued after the GP
     monkeypatch.setattr(pipeline, 'warm_up', lambda: (calls.append('outputs'), real_outputs())[1])
     assert main(['replay', str(SAMPLE), str(tmp_path / 'out'), '--max-frames', '2']) == 0
-    assert calls == ['warm_up', 'outputs', 'frame', 'frame']
+    # the GP with its std first (the surface reads it), the segmenter's stages (its own GP
+    # warm-up is then a cache hit), the output pass, then the frames
+    assert calls == ['warm_up', 'segmenter', 'warm_up', 'outputs', 'frame', 'frame']

@@ -766,10 +766,14 @@ class GroundSegmenter:
             grids = {}
             for dtype in (np.float32, np.float64):  # both input precisions of these passes
                 xyz = np.ones((3, 2), dtype=dtype)
-                rows = np.ones((2, 4), dtype)
-                rows.flags.writeable = False  # the node's decode: a read-only view on msg.data
-                # (N, 3), (N, 4) and read-only rows are three signatures to numba
-                for cloud in (xyz.T.copy(), np.ones((2, 4), dtype)[:, :3], rows[:, :3]):
+                rows, xyz_rows = np.ones((2, 4), dtype), np.ones((2, 3), dtype)
+                for view in (rows, xyz_rows):  # the node's decode: read-only views on msg.data
+                    view.flags.writeable = False
+                # five signatures to numba: (N, 3) C and F (the node's copy when x, y, z are
+                # not side by side), the columns of (N, 4) rows, read-only x, y, z, intensity
+                # rows and read-only x, y, z-only rows
+                for cloud in (xyz.T.copy(), xyz.T, np.ones((2, 4), dtype)[:, :3], rows[:, :3],
+                              xyz_rows):
                     compiled.run(True, _valid_columns_compiled, _valid_columns, cloud)
                 grid = grids[dtype] = build_grid(*xyz, 2, 2)
                 if dtype == np.float32:

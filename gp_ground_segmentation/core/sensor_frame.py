@@ -142,8 +142,11 @@ def _sample_offsets(points, pose):
         return None
     pts = pts[::max(1, pts.shape[0] // _SAMPLE_POINTS), :3]
     pose = pose or SensorPose()
-    dx = pts[:, 0].astype(np.float64) - pose.x
-    dy = pts[:, 1].astype(np.float64) - pose.y
+    # signalling-NaN bit patterns (driver garbage) raise FE_INVALID when widened; they become
+    # NaN all the same and are left out below
+    with np.errstate(invalid='ignore'):
+        dx = pts[:, 0].astype(np.float64) - pose.x
+        dy = pts[:, 1].astype(np.float64) - pose.y
     r = np.hypot(dx, dy)
     ok = np.isfinite(r) & ((pts[:, 0] != 0) | (pts[:, 1] != 0) | (pts[:, 2] != 0))
     if np.count_nonzero(ok) < _MIN_POINTS_TO_JUDGE // 20:

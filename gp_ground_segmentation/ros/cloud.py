@@ -222,8 +222,8 @@ def _xyz_view(points, dtype):
     offsets = [fields[c][1] for c in ('x', 'y', 'z')]
     if (any(fields[c][0] != dtype for c in ('x', 'y', 'z'))  # type, and native byte order
             or offsets != [offsets[0], offsets[0] + size, offsets[0] + 2 * size]
-            or points.ndim != 1 or not points.flags.c_contiguous):
-        return None
+            or points.ndim != 1 or not points.flags.c_contiguous or points.shape[0] == 0):
+        return None  # (an empty buffer cannot hold a view that starts at an offset)
     view = np.ndarray((points.shape[0], 3), dtype=dtype, buffer=points,
                       offset=offsets[0], strides=(points.strides[0], size))
     if not view.flags.aligned:
@@ -356,11 +356,11 @@ def split_cloud(msg, ground_mask, valid_mask):
     n = rows.shape[0]
     masks = []
     for name, mask in (('ground_mask', ground_mask), ('valid_mask', valid_mask)):
-        mask = np.ascontiguousarray(mask)
-        if mask.dtype != bool or mask.shape != (n,):
+        mask = np.asarray(mask)
+        if mask.dtype != bool or mask.shape != (n,):  # before ascontiguousarray makes 0-d 1-d
             raise ValueError(f'{name} must be a bool mask of shape ({n},), got {mask.dtype} '
                              f'{mask.shape}')
-        masks.append(_read_only(mask))
+        masks.append(_read_only(np.ascontiguousarray(mask)))
     ground, valid = masks
     n_ground = int(np.count_nonzero(ground))
     # exact when every ground point is valid; otherwise the pass reports more and runs again
@@ -371,6 +371,9 @@ def split_cloud(msg, ground_mask, valid_mask):
         counts = compiled.run(True, _split_rows_compiled, _split_rows, rows, ground, valid,
                               ground_rows, obstacle_rows)
         counts = tuple(int(c) for c in counts)
+        if counts[0] != n_ground:  # count_nonzero and the pass disagree: never seen
+            raise RuntimeError(f'split_cloud: {counts[0]} ground rows written, '
+                               f'{n_ground} expected')
         if counts[1] == n_obstacles:
             break
         n_obstacles = counts[1]

@@ -14,6 +14,11 @@ ground + obstacles + invalid must equal the input point count with no point in b
 points). :func:`warm_up` queues that pass's compilation; the node and bag replay call it after
 the segmenter's warm-up.
 
+The points are decoded as a read-only view on msg.data where the layout allows
+(``cloud.cloud_xyz(copy=False)``): the result's ``point_z`` (and so ``height_above_ground``)
+then reads the message's buffer, which it keeps alive; do not write into ``msg.data`` while
+using the result.
+
 Optional outputs (node parameters of the same names): ``publish_ground_surface`` adds the GP
 ground surface (``surface_cloud``: x, y, z, z_std FLOAT32 at the supported prediction points,
 input header); ``add_height_above_ground_field`` appends a FLOAT32 ``height_above_ground``

@@ -450,14 +450,18 @@ def load_segmenter_params(params_file: Optional[str]):
     return load_params(params_file)[0]
 
 
-def warm_up(log=None) -> None:
-    """Load the compiled GP kernel before the first frame, as the node's worker does, so the
-    first frame's timing (and its diagnostics) is not that of numba's compile/cache load; then
-    queue the output clouds' compiled pass (``pipeline.warm_up``)."""
+def warm_up(log=None, segmenter=None) -> None:
+    """Load the compiled kernels before the first frame, as the node's worker does, so the
+    first frame's timing (and its diagnostics) is not that of numba's compile/cache load: the
+    GP step with its posterior std (replay publishes the ground surface, whose z_std reads
+    it), then ``segmenter.warm_up()`` (every compiled stage a frame needs) when a segmenter is
+    given, then the output clouds' compiled pass (``pipeline.warm_up``)."""
     from ..core import gp_compiled
     from ..ros import pipeline
     try:
         gp_compiled.warm_up()
+        if segmenter is not None:
+            segmenter.warm_up()
     except Exception as exc:  # noqa: BLE001 - the numpy path still works
         if log:
             log(f'compiled GP kernel unavailable ({_one_line(exc)}); the first frame loads it')
@@ -553,7 +557,7 @@ def replay(inputs: Sequence, out_bag, *, topic: Optional[str] = None,
         raise BagError('--max-frames must be at least 1')
     seg_params, node_params = load_params(params_file)
     segmenter = GroundSegmenter(seg_params)
-    warm_up(log)
+    warm_up(log, segmenter)
     window = ProcessingWindow(int(node_params.get('diagnostics_window', 50)))
     budget_ms = float(node_params.get('processing_budget_ms', 100.0))
     outputs = {name: bool(node_params[name]) for name in OUTPUT_SWITCHES}

@@ -172,7 +172,7 @@ def cmd_eval(args) -> int:
     params = load_segmenter_params(args.params)
     labels_files = args.labels or []
     segmenter = GroundSegmenter(params)
-    warm_up(lambda text: print(f'gp-ground-seg eval: note: {text}', file=sys.stderr))
+    warm_up(lambda text: print(f'gp-ground-seg eval: note: {text}', file=sys.stderr), segmenter)
     frames = []
     k = 0
     for name, msg in _eval_frames(args.files, args.topic):

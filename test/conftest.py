@@ -252,6 +252,30 @@ def status_values(status):
     return {kv.key: kv.value for kv in status.values}
 
 
+def check_warm_up_in_fresh_cache(script: str, cache_dir) -> str:
+    """Run ``script`` (an ``if True:`` block, body indented 8 spaces, that warms up, sets
+    ``queued = set(compiled._queued)``, then runs frames) in a fresh interpreter with an empty
+    NUMBA_CACHE_DIR (``cache_dir``), followed by a report; assert that the frames queued no
+    signature the warm-up had not (a missed one compiles only once a frame needs it) and that
+    every queued kernel compiled (numba does not rebuild a cached kernel when a kernel of
+    another module that it calls changes, so only an empty cache shows a mismatch between
+    them). Returns the script's stdout."""
+    report = """
+        for kernel, signature in set(compiled._queued) - queued:
+            print('MISSING', kernel.py_func.__name__, signature)
+        print('WAITED', compiled.wait(240.0))
+        for kernel in compiled._failed:
+            print('FAILED', kernel.py_func.__name__)
+        """
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(cache_dir))
+    out = subprocess.run([sys.executable, '-c', script.rstrip() + report], cwd=REPO,
+                         capture_output=True, text=True, timeout=400, env=env)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert 'MISSING' not in out.stdout, out.stdout
+    assert 'WAITED True' in out.stdout and 'FAILED' not in out.stdout, out.stdout
+    return out.stdout
+
+
 def compiled_ready(function, *args, **kwargs):
     """Call ``function`` once, then wait until the kernels it queued are compiled (core/
     compiled.py compiles in the background and meanwhile runs the numpy reference)."""

@@ -1,7 +1,6 @@
 # SPDX-License-Identifier: Apache-2.0
 """Pipeline tests: synthetic scenes with exact truth, the real labelled frame, API contracts."""
 
-import os
 from pathlib import Path
 
 import numpy as np
@@ -626,8 +625,7 @@ def test_warm_up_queues_every_compiled_stage_a_frame_needs(tmp_path):
     signature mismatch between them (surface._points_loop calling additions._rise_loop after
     its arguments changed) passed on a machine with the old cache and failed only in a fresh
     clone."""
-    import subprocess
-    import sys
+    from conftest import check_warm_up_in_fresh_cache
     from gp_ground_segmentation.core import compiled
     if not compiled.AVAILABLE:
         pytest.skip('numba not installed')
@@ -647,19 +645,8 @@ def test_warm_up_queues_every_compiled_stage_a_frame_needs(tmp_path):
             seg.segment(cloud)
             # a warm frame too, and its surface cloud's rows (the node's ground_surface)
             seg.segment(cloud).ground_surface.points()
-        for kernel, signature in set(compiled._queued) - queued:
-            print('MISSING', kernel.py_func.__name__, signature)
-        print('WAITED', compiled.wait(240.0))
-        for kernel in compiled._failed:
-            print('FAILED', kernel.py_func.__name__)
         """
-    root = Path(__file__).resolve().parents[1]
-    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path))
-    out = subprocess.run([sys.executable, '-c', script], cwd=root, capture_output=True,
-                         text=True, timeout=400, env=env)
-    assert out.returncode == 0, out.stderr[-2000:]
-    assert 'MISSING' not in out.stdout, out.stdout
-    assert 'WAITED True' in out.stdout and 'FAILED' not in out.stdout, out.stdout
+    check_warm_up_in_fresh_cache(script, tmp_path)
 
 
 @pytest.mark.parametrize('std_factor, std_now', [(0.0, False), (0.5, True)])

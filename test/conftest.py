@@ -162,6 +162,9 @@ class RosHarness:
                        if p.topic_name.endswith(('/ground', '/obstacles'))]
             assert wait_for(lambda: all(self.node.count_subscribers(t) > 0 for t in outputs),
                             10.0)
+            # the worker's warm-up done (seconds with an empty numba cache), so that a test
+            # that patches the GP or numpy next patches the frames', not the warm-up's calls
+            assert self.node.warmed_up.wait(300.0), 'node warm-up did not finish'
         except BaseException:
             self.close()
             raise

@@ -148,6 +148,9 @@ class GroundSegmentationNode(Node):
         super().__init__(NODE_NAME, **node_kwargs)
         self._segmenter_factory = segmenter_factory
         self._worker = None
+        # set once the worker thread has warmed the segmenter and the output pass up (or
+        # failed to): frames that arrived before wait in the slot meanwhile
+        self.warmed_up = threading.Event()
         self._stopping = False
         self._destroyed = False
         # Per-problem log throttling: key -> [last log time (monotonic s), suppressed count].
@@ -276,6 +279,7 @@ class GroundSegmentationNode(Node):
             warm_up_outputs()  # queue the output clouds' compiled pass, after the segmenter's
         except Exception as exc:  # noqa: BLE001 - its numpy twin builds the same clouds
             self.get_logger().warning(f'output clouds pass unavailable, using numpy: {exc}')
+        self.warmed_up.set()
         while True:
             with self._cond:
                 while not self._slot and not self._stopping:

@@ -23,7 +23,7 @@ from common import (REPO, command_line, load_labeled_kitti, machine_markdown, ma
                     real_frames, update_results_section)
 
 from gp_ground_segmentation import GroundSegmenter  # noqa: E402 (path via common)
-from gp_ground_segmentation.core.structure import vertical_structure_mask  # noqa: E402
+from gp_ground_segmentation.core.structure import structure_feet  # noqa: E402
 from gp_ground_segmentation.tools.evaluation import truth_metrics  # noqa: E402
 
 
@@ -80,10 +80,8 @@ def with_structure_test(seg, points, valid_index, ground_height, ground):
     if not p.use_vertical_structure_test:
         return ground
     xyz = points[valid_index]
-    feet = vertical_structure_mask(
-        xyz[:, 0], xyz[:, 1], xyz[:, 2], ground_height.astype(xyz.dtype), ground,
-        cell_m=p.structure_cell_m, cell_deg=p.structure_cell_deg, rise_m=p.structure_rise_m,
-        max_height_m=p.structure_max_height_m, step_m=p.structure_step_m)
+    feet = structure_feet(p, xyz[:, 0], xyz[:, 1], xyz[:, 2], ground_height.astype(xyz.dtype),
+                          ground)
     return ground & ~feet
 
 

@@ -83,7 +83,7 @@ from .grid import (RING_RATIO, RadialGrid, build_grid, relative_density, ring_lo
 from .lines import LineSegments, extract_lines
 from .params import SegmenterParams
 from .sensor_frame import ground_height_in_cloud_frame, to_levelled_frame
-from .structure import vertical_structure_mask
+from .structure import structure_feet, vertical_structure_mask
 from .surface import GroundSurface, ground_offsets
 
 _OUTLIER_NOISE_VAR = 1e4  # m^2: a rejected candidate's noise variance (std 100 m)
@@ -1132,11 +1132,8 @@ class GroundSegmenter:
         feet = None
         if p.use_vertical_structure_test:
             t = time.perf_counter()
-            feet = vertical_structure_mask(
-                x, y, z, z_hat, ground_v, cell_m=p.structure_cell_m,
-                cell_deg=p.structure_cell_deg, rise_m=p.structure_rise_m,
-                max_height_m=p.structure_max_height_m, step_m=p.structure_step_m,
-                r=grid.point_r, angle=grid.point_angle)
+            feet = structure_feet(p, x, y, z, z_hat, ground_v, r=grid.point_r,
+                                  angle=grid.point_angle)
             ground_v &= ~feet
             stats['structure_feet'] = int(np.count_nonzero(feet))
             timings['structure'] = (time.perf_counter() - t) * 1e3

@@ -40,7 +40,7 @@ import numpy as np
 from .compiled import kernel, run
 from .grid import _angle, _segment_of_angle
 
-__all__ = ['vertical_structure_mask']
+__all__ = ['vertical_structure_mask', 'structure_feet']
 
 
 # Cells grow with range only up to this size (m): a wider neighbourhood is no longer "right
@@ -73,6 +73,18 @@ def _within(index, r, limit):
     r = r[index]
     near = r <= limit
     return index[near], r[near]
+
+
+def structure_feet(params, x, y, z, ground_z, candidate, *, r=None, angle=None):
+    """:func:`vertical_structure_mask` with the sizes of ``params`` (SegmenterParams:
+    structure_cell_m, structure_cell_deg, structure_rise_m, structure_max_height_m,
+    structure_step_m): the stage ``structure`` of the segmenter, also for tools that apply it
+    to other ground heights."""
+    return vertical_structure_mask(
+        x, y, z, ground_z, candidate, cell_m=params.structure_cell_m,
+        cell_deg=params.structure_cell_deg, rise_m=params.structure_rise_m,
+        max_height_m=params.structure_max_height_m, step_m=params.structure_step_m, r=r,
+        angle=angle)
 
 
 def vertical_structure_mask(x: np.ndarray, y: np.ndarray, z: np.ndarray,

@@ -635,3 +635,45 @@ def test_cloud_xyz_keeps_float32_fields_float32_and_column_major(order):
     assert cloud_xyz(pts).dtype == np.float64  # the default stays float64
     wide = np.zeros(5, dtype=[('x', '<f4'), ('y', '<f4'), ('z', '<f8')])
     assert xyz_dtype(wide) == np.float64 and cloud_xyz(wide, dtype=None).dtype == np.float64
+
+
+def test_encoders_store_their_buffer_without_the_setters_copy():
+    """The generated PointCloud2 keeps the array.array the encoder filled (the setter would
+    store a copy of it); a message class without the generated slot gets it through its
+    setter, and one whose getter does not return the slot too."""
+    data = array.array('B', range(24))
+    msg = PointCloud2()
+    cloud_module._store_data(msg, data)
+    assert msg.data is data
+    double = types.SimpleNamespace()
+    cloud_module._store_data(double, data)
+    assert double.data is data
+
+    class Copying:
+        """A message whose setter copies and whose getter ignores ``_data``."""
+
+        def __init__(self):
+            self._stored = None
+            self._data = None
+
+        @property
+        def data(self):
+            return self._stored
+
+        @data.setter
+        def data(self, value):
+            self._stored = array.array('B', value)
+
+    copying = Copying()
+    cloud_module._store_data(copying, data)
+    assert copying.data == data and copying.data is not data
+    # and what the encoders hand out is what their messages hold, byte for byte
+    n, step = 30, 16
+    src = cloud(XYZ, step, (np.arange(n * step) % 251).astype(np.uint8), n)
+    ground = np.arange(n) % 3 == 0
+    g, o, _ = split_cloud(src, ground, np.ones(n, bool))
+    assert isinstance(g.data, array.array) and bytes(g.data) == bytes(
+        subset_cloud(src, ground).data)
+    values = np.arange(12, dtype=np.float32).reshape(3, 4)
+    surface = float32_cloud(None, values, ('x', 'y', 'z', 'z_std'), PointCloud2)
+    assert bytes(surface.data) == values.tobytes()

@@ -263,6 +263,9 @@ class GroundSegmentationNode(Node):
                     self.window.record_dropped(1)  # deque(maxlen) evicts the oldest on append
                 self._slot.append((msg, time.perf_counter()))
                 self._cond.notify()
+            # Hand the GIL to the woken worker now: otherwise it waits until this executor
+            # thread blocks in its next wait (its Python bookkeeping after the callback)
+            time.sleep(0)
         except Exception as exc:  # never let an exception out of an executor callback
             self.get_logger().error(f'cloud callback failed: {_one_line(exc)}',
                                     throttle_duration_sec=_LOG_THROTTLE_S)

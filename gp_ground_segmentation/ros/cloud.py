@@ -39,7 +39,7 @@ import numpy as np
 from ..core import compiled
 
 __all__ = ['CloudFormatError', 'POINTFIELD_DTYPES', 'fields_dtype', 'read_cloud', 'cloud_xyz',
-           'xyz_dtype', 'point_rows', 'subset_cloud', 'split_cloud', 'make_cloud',
+           'xyz_dtype', 'point_rows', 'subset_cloud', 'split_cloud', 'make_cloud', 'set_data',
            'float32_cloud', 'with_float32_field']
 
 
@@ -269,6 +269,12 @@ def _store_data(msg, data) -> None:
         return
     if getattr(msg, 'data', None) is not data:
         msg.data = data
+
+
+def set_data(msg, contiguous) -> None:
+    """Set ``msg.data`` to a copy of the bytes of the C-contiguous numpy array ``contiguous``:
+    one memcpy into an array.array('B'), which the message keeps as is (:func:`_store_data`)."""
+    _store_data(msg, _u8_array(contiguous))
 
 
 def _u8_array(contiguous):
@@ -578,7 +584,7 @@ def make_cloud(header, points, msg_type=None):
     msg.is_bigendian = bigendian
     msg.point_step = int(dt.itemsize)
     msg.row_step = int(dt.itemsize) * int(pts.shape[0])
-    _store_data(msg, _u8_array(pts.view(np.uint8) if pts.size else np.zeros(0, np.uint8)))
+    set_data(msg, pts.view(np.uint8) if pts.size else np.zeros(0, np.uint8))
     names = dt.names
     xyz_names = ('x', 'y', 'z')
     if (all(c in names for c in xyz_names)
@@ -612,7 +618,7 @@ def float32_cloud(header, values, names, msg_type=None):
     msg.is_bigendian = False
     msg.point_step = 4 * count
     msg.row_step = 4 * count * int(values.shape[0])
-    _store_data(msg, _u8_array(values))
+    set_data(msg, values)
     xyz = [i for i, n in enumerate(names) if n in ('x', 'y', 'z')]
     msg.is_dense = len(xyz) == 3 and bool(np.isfinite(values[:, xyz]).all())
     return msg
@@ -647,6 +653,6 @@ def with_float32_field(msg, name, values):
     out.is_bigendian = bool(msg.is_bigendian)
     out.point_step = step + 4
     out.row_step = n * (step + 4)
-    _store_data(out, _u8_array(packed.view(np.uint8)))
+    set_data(out, packed.view(np.uint8))
     out.is_dense = bool(msg.is_dense)
     return out

@@ -287,11 +287,11 @@ class FrameSource:
 
 def _ros1_to_rclpy_cloud(m):
     """rclpy PointCloud2 from a rosbags-decoded ROS 1 PointCloud2 (header.seq is dropped)."""
-    import array
-
     from builtin_interfaces.msg import Time
     from sensor_msgs.msg import PointCloud2, PointField
     from std_msgs.msg import Header
+
+    from ..ros.cloud import set_data
     out = PointCloud2()
     stamp = Time(sec=int(m.header.stamp.sec), nanosec=int(m.header.stamp.nanosec))
     out.header = Header(stamp=stamp, frame_id=m.header.frame_id)
@@ -300,9 +300,7 @@ def _ros1_to_rclpy_cloud(m):
                              count=int(f.count)) for f in m.fields]
     out.is_bigendian = bool(m.is_bigendian)
     out.point_step, out.row_step = int(m.point_step), int(m.row_step)
-    data = array.array('B')
-    data.frombytes(np.ascontiguousarray(m.data, dtype=np.uint8).tobytes())
-    out.data = data  # array.array('B') is stored as is (fast rclpy setter path)
+    set_data(out, np.ascontiguousarray(m.data, dtype=np.uint8))  # one copy of the bytes
     out.is_dense = bool(m.is_dense)
     return out
 

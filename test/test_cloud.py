@@ -6,7 +6,10 @@ The reference decoder below uses the struct module point by point, independent o
 """
 
 import array
+import os
 import struct
+import subprocess
+import sys
 import types
 from pathlib import Path
 
@@ -677,3 +680,37 @@ def test_encoders_store_their_buffer_without_the_setters_copy():
     values = np.arange(12, dtype=np.float32).reshape(3, 4)
     surface = float32_cloud(None, values, ('x', 'y', 'z', 'z_std'), PointCloud2)
     assert bytes(surface.data) == values.tobytes()
+
+
+_SERIALISE_SCRIPT = '''
+import numpy as np
+from rclpy.serialization import deserialize_message, serialize_message
+from sensor_msgs.msg import PointCloud2
+from gp_ground_segmentation.ros.cloud import (
+    float32_cloud, make_cloud, split_cloud, with_float32_field)
+rng = np.random.default_rng(3)
+xyz = rng.normal(size=(500, 3)).astype(np.float32)
+src = make_cloud(None, xyz)
+ground = rng.random(500) < 0.6
+valid = rng.random(500) < 0.9
+made = list(split_cloud(src, ground, valid)[:2]) + [
+    src, float32_cloud(None, xyz[:7], ('x', 'y', 'z'), PointCloud2),
+    with_float32_field(src, 'h', np.arange(500.0))]
+for msg in made:
+    back = deserialize_message(serialize_message(msg), PointCloud2)
+    assert bytes(back.data) == bytes(msg.data) and back.width == msg.width
+print('ok', PointCloud2()._check_fields)
+'''
+
+
+@pytest.mark.parametrize('check_fields', ['0', '1'])
+def test_encoded_messages_serialise_with_and_without_rosidl_field_checks(check_fields):
+    """The messages keep the encoder's buffer in the generated ``_data`` slot: rclpy's
+    serialiser reads it as it reads a setter-made one, whether ROS_PYTHON_CHECK_FIELDS makes the
+    generated setters check their values or not (fresh interpreter: the flag is read when the
+    message module is imported)."""
+    env = dict(os.environ, ROS_PYTHON_CHECK_FIELDS=check_fields)
+    done = subprocess.run([sys.executable, '-c', _SERIALISE_SCRIPT], env=env,
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == ['ok', str(check_fields == '1')]

@@ -21,14 +21,13 @@ predicted ground count as the column: tree crowns, car roofs and signs overhangi
 ground are higher than the structures whose feet are the problem, and must not erase the
 ground under them.
 
-The cells are computed with numpy (vectorised: its arctan2 and log are not the compiled
-ones, bit for bit; the azimuths are the grid's, computed once per frame). The selection of the
-column points and candidates (with their azimuth and range in float64 for the cells) is one
-compiled pass,
-and so are the table of the highest column point per cell (azimuth x radial; compiled, only
-the rings each azimuth row uses) and the nine look-ups per candidate; the numpy references
-(masks and gathers; a dense table, ``np.maximum.at`` and nine gathers) give the same points
-and mask and are used without numba. About 2 ms on a 124k-point KITTI scan.
+Two compiled passes: the selection of the column points and the candidates with their polar
+cells (from the grid's float64 azimuths, computed once per frame; only the far rings' log is
+numpy's, whose last bit numba's does not match), then the table of the highest column point
+per cell (azimuth x radial, only the rings each azimuth row uses) and the nine look-ups per
+candidate. Their numpy twins (masks and gathers; a dense table, ``np.maximum.at`` and nine
+gathers) give the same points and mask, and run without numba or while a pass compiles.
+About 2 ms on a 124k-point KITTI scan.
 Curbs (0.1-0.2 m faces) stay ground when ``rise_m`` is above curb height; ramps and hills rise
 less than ``rise_m`` over a few cm; sparse far ground has no point above it.
 """
@@ -47,25 +46,6 @@ __all__ = ['vertical_structure_mask', 'structure_feet']
 # above" a point. Points beyond the range where cells would be wider (115 m at 0.25 degrees)
 # keep their height-test label; it also bounds the cell table however far points lie.
 _MAX_CELL_M = 0.5
-
-
-def _polar_cells(angle, r, cell_m: float, cell_rad: float):
-    """(azimuth cell, radial cell) of points at float64 azimuth ``angle`` (grid._angle) and
-    range r, and the number of azimuth cells.
-
-    Float64 maths whatever the input precision: a float32 cloud and its float64 copy must put
-    every point in the same cell. Azimuth cells are the grid's segments, only finer.
-    """
-    n_az = max(1, int(np.ceil(2.0 * np.pi / cell_rad)))
-    az = _segment_of_angle(angle, n_az)
-    # cells of cell_m out to r_square, where an azimuth cell is cell_m wide, then cells growing
-    # with r: index r_square / cell_m + ln(r / r_square) / cell_rad, continuous at r_square
-    r_square = cell_m / cell_rad
-    r = np.asarray(r, dtype=np.float64)
-    ring = r * (1.0 / cell_m)
-    far = np.flatnonzero(r > r_square)
-    ring[far] = r_square / cell_m + np.log(r[far] * (1.0 / r_square)) * (1.0 / cell_rad)
-    return az, ring.astype(np.int32), n_az
 
 
 def _within(index, r, limit):
@@ -102,11 +82,10 @@ def vertical_structure_mask(x: np.ndarray, y: np.ndarray, z: np.ndarray,
     and more than step_m above the candidate itself (m) makes the candidate a structure foot.
     r: (P,) horizontal range sqrt(x^2 + y^2) (m) and angle: (P,) float64 azimuth
     arctan2(y, x) (rad, as ``grid._angle`` computes it) when the caller has them (the grid
-    does). compiled: the numba pass for the table and the look-ups when numba imports (else
-    the numpy reference).
+    does). compiled: the numba passes when numba imports and they are compiled for these
+    types (else their numpy twins, the same mask; False: the twins always).
     Returns a (P,) bool mask, a subset of ``candidate``.
     """
-    out = np.zeros(candidate.shape, dtype=bool)
     cell_rad = np.radians(cell_deg)
     limit = max(_MAX_CELL_M, cell_m) / cell_rad
     if r is None:
@@ -118,41 +97,35 @@ def vertical_structure_mask(x: np.ndarray, y: np.ndarray, z: np.ndarray,
     height_type = np.result_type(z, ground_z).type
     select = (angle, z, ground_z, candidate, r, height_type(rise_m), height_type(max_height_m),
               r.dtype.type(limit))
-    if compiled and _cells_hits_compiled is not None:
-        return _mask_in_cells(select, cell_m, cell_rad, z.dtype.type(step_m))
-    angle_col, z_col, r_col, cand, angle_cand, z_cand, r_cand = run(
-        compiled, _select_compiled, _select_numpy, *select)
-    if cand.size == 0 or z_col.size == 0:
-        return out
-    az_col, ring_col, n_az = _polar_cells(angle_col, r_col, cell_m, cell_rad)
-    az_cand, ring_cand, _ = _polar_cells(angle_cand, r_cand, cell_m, cell_rad)
-    width = int(max(ring_col.max(), ring_cand.max())) + 3
     # the step in z's precision, as numpy compares a float32 difference with a Python float
-    args = (az_col, ring_col, z_col, az_cand, ring_cand, z_cand, n_az, width,
-            z.dtype.type(step_m))
-    out[cand] = run(compiled, _structure_hits_compiled, _structure_hits_numpy, *args)
-    return out
+    return _mask_in_cells(select, cell_m, cell_rad, z.dtype.type(step_m), compiled)
 
 
-def _mask_in_cells(select, cell_m: float, cell_rad: float, step):
-    """:func:`vertical_structure_mask`'s compiled path: the selection and the points' cells
-    (:func:`_polar_cells`' arithmetic, only its log left to numpy: numba's differs from numpy's
-    in the last bit) in one compiled pass, then the far rings, the table, the look-ups and the
-    mask in another; the same mask as the numpy path, without its ~15 numpy calls."""
+def _mask_in_cells(select, cell_m: float, cell_rad: float, step, compiled: bool):
+    """The mask in two passes, each compiled when ``compiled`` and ready (else its numpy
+    twin, the same result): the selection and the points' polar cells, then the far rings,
+    the table, the look-ups and the mask. Only the far rings' log is numpy's on both paths
+    (numba's differs from numpy's in the last bit).
+
+    The cells: azimuth cells of ``cell_rad`` (the grid's segments, only finer), and radial
+    cells of ``cell_m`` out to r_square = cell_m / cell_rad, where an azimuth cell is cell_m
+    wide, then cells growing with r: index r_square / cell_m + ln(r / r_square) / cell_rad,
+    continuous at r_square. Float64 maths whatever the input precision: a float32 cloud and its
+    float64 copy must put every point in the same cell."""
     n_az = max(1, int(np.ceil(2.0 * np.pi / cell_rad)))
     r_square = cell_m / cell_rad
-    # the constants as _segment_of_angle and _polar_cells compute them
+    # the constants as _segment_of_angle computes them
     cells = (n_az, n_az / (2.0 * np.pi), 1.0 / cell_m, r_square, 1.0 / r_square)
     (az_col, ring_col, z_col, cand, az_cand, ring_cand, z_cand, far_index, n_far_col,
-     far_ratio) = run(True, _select_cells_compiled, _select_cells_numpy, *select, *cells)
-    return run(True, _cells_hits_compiled, _cells_hits_numpy, select[1].size, az_col, ring_col,
-               z_col, cand, az_cand, ring_cand, z_cand, far_index, n_far_col,
+     far_ratio) = run(compiled, _select_cells_compiled, _select_cells_numpy, *select, *cells)
+    return run(compiled, _cells_hits_compiled, _cells_hits_numpy, select[1].size, az_col,
+               ring_col, z_col, cand, az_cand, ring_cand, z_cand, far_index, n_far_col,
                np.log(far_ratio), r_square / cell_m, 1.0 / cell_rad, n_az, step)
 
 
 def _cells_numpy(angle, r, n_az, inv_cell_m, r_square):
     """Azimuth cells, radial cells of the points within ``r_square`` (0 beyond) and the
-    indices of those beyond (numpy; :func:`_polar_cells` without the far rings' log)."""
+    indices of those beyond (numpy; the far rings are :func:`_far_rings`')."""
     az = _segment_of_angle(angle, n_az)
     far = np.flatnonzero(r > r_square)
     ring = (r * inv_cell_m).astype(np.int32)
@@ -162,7 +135,7 @@ def _cells_numpy(angle, r, n_az, inv_cell_m, r_square):
 
 def _select_cells_numpy(angle, z, ground_z, candidate, r, rise_m, max_height_m, limit, n_az,
                         az_factor, inv_cell_m, r_square, inv_r_square):
-    """The numpy twin of :func:`_select_cells_loop` (run only while it compiles)."""
+    """The numpy twin of :func:`_select_cells_loop` (while it compiles, or without numba)."""
     angle_col, z_col, r_col, cand, angle_cand, z_cand, r_cand = _select_numpy(
         angle, z, ground_z, candidate, r, rise_m, max_height_m, limit)
     az_col, ring_col, far_col = _cells_numpy(angle_col, r_col, n_az, inv_cell_m, r_square)
@@ -177,8 +150,8 @@ def _select_cells_loop(angle, z, ground_z, candidate, r, rise_m, max_height_m, l
     """The compiled selection (:func:`_select_loop`) and the cells of the points it selects
     (compiled with numba): azimuth cell, radial cell out to ``r_square`` (0 beyond), and of
     the points beyond it their index (column points first, then candidates; ``n_far_col`` of
-    the former) and r / r_square, whose log numpy takes (:func:`_polar_cells`'
-    arithmetic, the same float64 operations)."""
+    the former) and r / r_square, whose log numpy takes (:func:`_mask_in_cells`' cells,
+    the same float64 operations as :func:`_cells_numpy`)."""
     angle_col, z_col, r_col, cand, angle_cand, z_cand, r_cand = _select_compiled(
         angle, z, ground_z, candidate, r, rise_m, max_height_m, limit)
     n_col, n_cand = z_col.size, z_cand.size
@@ -211,7 +184,7 @@ def _select_cells_loop(angle, z, ground_z, candidate, r, rise_m, max_height_m, l
 def _far_rings(ring_col, ring_cand, far_index, n_far_col, log_ratio, ring_base,
                inv_cell_rad):
     """Radial cells of the points beyond r_square (ring_base + ln(r / r_square) / cell_rad,
-    as :func:`_polar_cells` adds them) into ``ring_col`` and ``ring_cand``, in place."""
+    as :func:`_mask_in_cells` defines them) into ``ring_col`` and ``ring_cand``, in place."""
     ring = (ring_base + log_ratio * inv_cell_rad).astype(np.int32)
     ring_col[far_index[:n_far_col]] = ring[:n_far_col]
     ring_cand[far_index[n_far_col:]] = ring[n_far_col:]
@@ -219,7 +192,7 @@ def _far_rings(ring_col, ring_cand, far_index, n_far_col, log_ratio, ring_base,
 
 def _cells_hits_numpy(n_points, az_col, ring_col, z_col, cand, az_cand, ring_cand, z_cand,
                       far_index, n_far_col, log_ratio, ring_base, inv_cell_rad, n_az, step):
-    """The numpy twin of :func:`_cells_hits_loop` (run only while it compiles)."""
+    """The numpy twin of :func:`_cells_hits_loop` (while it compiles, or without numba)."""
     out = np.zeros(n_points, dtype=bool)
     if cand.size == 0 or z_col.size == 0:
         return out
@@ -256,7 +229,7 @@ def _select_numpy(angle, z, ground_z, candidate, r, rise_m, max_height_m, limit)
     """The points within ``limit`` of the sensor that are column points (between ``rise_m`` and
     ``max_height_m`` above the predicted ground) and those that are ``candidate``s: (azimuth,
     z, r of the column points, then the candidates' indices, azimuth, z, r), r in float64 for
-    :func:`_polar_cells`."""
+    the cells (:func:`_mask_in_cells`)."""
     height = z - ground_z
     selected = []
     for index in (np.flatnonzero((height > rise_m) & (height <= max_height_m)),

@@ -88,6 +88,21 @@ def test_unreadable_params_file_is_one_fatal_line(tmp_path, make_path):
     assert len(lines) == 1 and 'FATAL' in lines[0] and str(path) in lines[0], out
 
 
+@pytest.mark.parametrize('text, where', [
+    ('/**:\n  ros__parameters:\n    ground_threshold_m: [0.25\n', 'line 4'),
+    ('/**:\n  ros__parameters:\n   ground_threshold_m: 0.25\n  bad: [\n', 'line'),
+    ('- just\n- a list\n', 'top level must be a mapping')], ids=['flow', 'indent', 'list'])
+def test_params_file_that_is_not_yaml_is_one_fatal_line(tmp_path, text, where):
+    # rcl's own parser reports a syntax error in two log lines naming its C sources
+    path = tmp_path / 'broken.yaml'
+    path.write_text(text)
+    code, out = _run(['--ros-args', '--params-file', str(path)])
+    assert code == 1, out
+    lines = out.strip().splitlines()
+    assert len(lines) == 1 and 'FATAL' in lines[0] and str(path) in lines[0], out
+    assert where in lines[0] and 'parse.c' not in out and 'listening on' not in out, out
+
+
 def _shipped_params_with(tmp_path, **changes):
     doc = yaml.safe_load(PARAMS_YAML.read_text())
     (section,) = doc

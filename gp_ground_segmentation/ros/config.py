@@ -249,25 +249,39 @@ def _ros_yaml_loader():
     return Loader
 
 
-def params_file_values(path, node_name: str = NODE_NAME, namespace: str = '/') -> dict:
-    """The flattened ``ros__parameters`` of a parameter file's sections for this node, merged
-    in file order (load_params_file); ParameterConfigError when unreadable, not YAML or without
-    a section for the node."""
+def read_params_file(path) -> dict:
+    """The YAML document of a parameter file, as rcl reads it (a mapping of node names;
+    empty file: {}); ParameterConfigError in one line when it is unreadable, not YAML or not a
+    mapping. The node calls it before rcl parses the file, whose parser reports a syntax error
+    in two log lines naming its own source files."""
     import yaml  # local: the core does not need PyYAML
 
     path = Path(path)
     try:
         text = path.read_text()
     except OSError as exc:
-        raise ParameterConfigError(f'cannot read parameter file {path}: {exc}') from None
+        raise ParameterConfigError(
+            f'cannot read parameter file {path}: {exc.strerror or exc}') from None
     try:
         doc = yaml.load(text, Loader=_ros_yaml_loader())  # noqa: S506 - a SafeLoader
     except yaml.YAMLError as exc:
-        raise ParameterConfigError(f'{path}: not valid YAML: {exc}') from None
+        mark = getattr(exc, 'problem_mark', None)
+        where = f' (line {mark.line + 1}, column {mark.column + 1})' if mark else ''
+        problem = getattr(exc, 'problem', None) or str(exc).splitlines()[0]
+        raise ParameterConfigError(f'{path}: not valid YAML{where}: {problem}') from None
     if doc is None:
         doc = {}
     if not isinstance(doc, dict):
         raise ParameterConfigError(f'{path}: top level must be a mapping of node names')
+    return doc
+
+
+def params_file_values(path, node_name: str = NODE_NAME, namespace: str = '/') -> dict:
+    """The flattened ``ros__parameters`` of a parameter file's sections for this node, merged
+    in file order (load_params_file); ParameterConfigError when unreadable, not YAML or without
+    a section for the node."""
+    path = Path(path)
+    doc = read_params_file(path)
     values: dict = {}
     matched = False
     try:

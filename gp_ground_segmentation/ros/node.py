@@ -69,7 +69,7 @@ from sensor_msgs.msg import PointCloud2
 from .cloud import CloudFormatError
 from .config import (NODE_NAME, NODE_PARAMS, ParameterConfigError, all_param_specs,
                      check_param_value, is_ros_builtin, params_file_values, params_from_values,
-                     qos_override_topics, split_params)
+                     qos_override_topics, read_params_file, split_params)
 from .diagnostics import ProcessingWindow, diagnostics_array, diagnostics_status
 from ..core.allocator import keep_freed_memory
 from ..core.params import SegmenterParams
@@ -526,16 +526,6 @@ def _split_command_line(args: list) -> tuple[list, list]:
     return plain, files
 
 
-def _check_params_file_readable(path: str) -> None:
-    """rcl reports a missing or unreadable file as an RCLError traceback; say it in one line."""
-    try:
-        with open(path, 'rb'):
-            pass
-    except OSError as exc:
-        raise ParameterConfigError(
-            f'cannot read parameter file {path}: {exc.strerror or exc}') from None
-
-
 def _check_params_file_sections(path: str, node) -> None:
     """A params file with no section for this node would be ignored silently by rcl (e.g. a
     'ground_segmentation:' key when the node runs in a namespace): refuse to start instead.
@@ -573,8 +563,8 @@ def main(args=None):
     node = None
     exit_code = 0
     try:
-        for path in params_files:
-            _check_params_file_readable(path)
+        for path in params_files:  # rcl: a traceback when unreadable, two lines when not YAML
+            read_params_file(path)
         rclpy.init(args=argv)
         # The executor exists before the node announces itself, so a Ctrl-C right after the
         # 'listening' line never lands inside executor construction (an rclpy 7.1 __del__ race).

@@ -116,6 +116,22 @@ def test_errors_are_one_line_exit_2(argv, expected, capsys):
     assert len(err) == 1 and expected in err[0] and 'Traceback' not in err[0]
 
 
+@needs_data
+def test_eval_refuses_too_few_label_files_before_segmenting(capsys, monkeypatch):
+    # two point files, one --labels file: refused before the first frame is segmented
+    from gp_ground_segmentation.core import segmenter as segmenter_module
+
+    def never(*_args, **_kwargs):
+        raise AssertionError('segment() ran before the label count was checked')
+    monkeypatch.setattr(segmenter_module.GroundSegmenter, 'segment', never)
+    assert main(['eval', str(SCAN), str(SCAN), '--labels', str(LABELS)]) == 2
+    captured = capsys.readouterr()
+    err = captured.err.strip().splitlines()
+    assert err[-1].endswith('1 label file(s) given for 2 frame(s); give one --labels file per '
+                            'frame'), err
+    assert 'ground share' not in captured.out
+
+
 def test_usage_error_exit_2(capsys):
     with pytest.raises(SystemExit) as exc:
         main(['frobnicate'])

@@ -112,6 +112,16 @@ def no_ground_note(name: str, ground_points: int, ground: tuple):
 # eval
 # ---------------------------------------------------------------------------------------------
 
+def _point_file_count(inputs):
+    """How many frames ``inputs`` hold when every one is a point file (one frame each), else
+    None (bags and directories are counted as they are read)."""
+    from .bag import is_point_file
+    paths = [Path(spec) for spec in inputs]
+    if all(path.is_file() and is_point_file(path) for path in paths):
+        return len(paths)
+    return None
+
+
 def _eval_frames(inputs, topic):
     """Yield (name, rclpy PointCloud2) for every input: point files, BAG:INDEX or whole bags."""
     from .bag import FrameSource, is_point_file, read_frame
@@ -171,6 +181,11 @@ def cmd_eval(args) -> int:
     ground, ignored = label_classes(args)
     params = load_segmenter_params(args.params)
     labels_files = args.labels or []
+    frame_count = _point_file_count(args.files)
+    if labels_files and frame_count is not None and frame_count != len(labels_files):
+        # known before any frame is segmented when every input is one point file
+        raise CliError(f'{len(labels_files)} label file(s) given for {frame_count} frame(s); '
+                       'give one --labels file per frame')
     segmenter = GroundSegmenter(params)
     warm_up(lambda text: print(f'gp-ground-seg eval: note: {text}', file=sys.stderr), segmenter)
     frames = []

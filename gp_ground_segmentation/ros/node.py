@@ -495,7 +495,10 @@ Ground/obstacle split of LiDAR point clouds with a Gaussian-process ground model
 Topics (relative names): points (sub, PointCloud2, sensor-data QoS), ground and obstacles (pub,
 PointCloud2), ground_surface (pub, PointCloud2 x, y, z, z_std, while subscribed),
 /diagnostics. The clouds must be in the sensor's frame, or give its pose with the
-sensor_* parameters (README "Frames").
+sensor_* parameters (README "Frames"). Large clouds (~2 MB) from another process need
+Fast DDS's shared-memory profile in the publisher's environment (and the node's):
+  export FASTRTPS_DEFAULT_PROFILES_FILE=<config>/fastdds_large_shm.xml
+(<config>: config/ of the source tree, share/gp_ground_segmentation/config/ of an install).
 
 Examples:
   ground_segmentation_node --ros-args -r points:=/velodyne_points --params-file params.yaml

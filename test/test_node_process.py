@@ -89,13 +89,24 @@ def test_unreadable_params_file_is_one_fatal_line(tmp_path, make_path):
 
 
 @pytest.mark.parametrize('text, where', [
-    ('/**:\n  ros__parameters:\n    ground_threshold_m: [0.25\n', 'line 4'),
-    ('/**:\n  ros__parameters:\n   ground_threshold_m: 0.25\n  bad: [\n', 'line'),
-    ('- just\n- a list\n', 'top level must be a mapping')], ids=['flow', 'indent', 'list'])
+    (b'/**:\n  ros__parameters:\n    ground_threshold_m: [0.25\n',
+     'line 3, column 25: while parsing a flow sequence'),
+    (b'/**:\n  ros__parameters:\n    frame: "open\n', 'line 3, column 12: while scanning'),
+    (b'/**:\n  ros__parameters:\n    ground_threshold_m: 0.25\n   bad: 1\n',
+     "line 4, column 4: expected <block end>, but found '<block mapping start>'"),
+    (b'/**:\n  ros__parameters:\n\tground_threshold_m: 0.25\n',
+     "line 3, column 1: found character '\\t' that cannot start any token"),
+    (b'/**:\n  ros__parameters:\n    a: &t 0.25\n    ground_threshold_m: *t\n',
+     'line 4: YAML aliases (*t) are not supported'),
+    (b'/**:\n  ros__parameters:\n    ground_threshold_m: 0.25 # caf\xe9\n',
+     'line 3: not UTF-8 text (byte 58: 0xe9)'),
+    (b'- just\n- a list\n', 'top level must be a mapping')],
+    ids=['flow', 'quote', 'indent', 'tab', 'alias', 'latin1', 'list'])
 def test_params_file_that_is_not_yaml_is_one_fatal_line(tmp_path, text, where):
-    # rcl's own parser reports a syntax error in two log lines naming its C sources
+    # rcl's own parser reports such errors in two log lines naming its C sources (a file that
+    # is not UTF-8 made the node's own check raise a traceback)
     path = tmp_path / 'broken.yaml'
-    path.write_text(text)
+    path.write_bytes(text)
     code, out = _run(['--ros-args', '--params-file', str(path)])
     assert code == 1, out
     lines = out.strip().splitlines()

@@ -251,29 +251,49 @@ def _ros_yaml_loader():
 
 def read_params_file(path) -> dict:
     """The YAML document of a parameter file, as rcl reads it (a mapping of node names;
-    empty file: {}); ParameterConfigError in one line when it is unreadable, not YAML or not a
-    mapping. The node calls it before rcl parses the file, whose parser reports a syntax error
-    in two log lines naming its own source files."""
+    empty file: {}); ParameterConfigError in one line when it is unreadable, not UTF-8, not
+    YAML, uses aliases (rcl refuses them) or is not a mapping. The node calls it before rcl
+    parses the file, whose parser reports such errors in two log lines naming its own source
+    files."""
     import yaml  # local: the core does not need PyYAML
 
     path = Path(path)
     try:
-        text = path.read_text()
+        text = path.read_text(encoding='utf-8')
     except OSError as exc:
         raise ParameterConfigError(
             f'cannot read parameter file {path}: {exc.strerror or exc}') from None
+    except UnicodeDecodeError as exc:
+        line = exc.object.count(b'\n', 0, exc.start) + 1
+        raise ParameterConfigError(f'{path}: line {line}: not UTF-8 text (byte {exc.start}: '
+                                   f'0x{exc.object[exc.start]:02x})') from None
     try:
         doc = yaml.load(text, Loader=_ros_yaml_loader())  # noqa: S506 - a SafeLoader
+        alias = next((event for event in yaml.parse(text, Loader=_ros_yaml_loader())
+                      if isinstance(event, yaml.AliasEvent)), None)
     except yaml.YAMLError as exc:
-        mark = getattr(exc, 'problem_mark', None)
-        where = f' (line {mark.line + 1}, column {mark.column + 1})' if mark else ''
-        problem = getattr(exc, 'problem', None) or str(exc).splitlines()[0]
-        raise ParameterConfigError(f'{path}: not valid YAML{where}: {problem}') from None
+        raise ParameterConfigError(f'{path}: not valid YAML ({_yaml_error_text(exc)})') from None
+    if alias is not None:
+        raise ParameterConfigError(
+            f'{path}: line {alias.start_mark.line + 1}: YAML aliases (*{alias.anchor}) are not '
+            'supported by ROS 2 parameter files; write the value out')
     if doc is None:
         doc = {}
     if not isinstance(doc, dict):
         raise ParameterConfigError(f'{path}: top level must be a mapping of node names')
     return doc
+
+
+def _yaml_error_text(exc) -> str:
+    """PyYAML's error in one line: what it was reading and where it began, then the problem
+    and where it was found (a quote left open is found at the end of the file)."""
+    parts = []
+    for text, mark in ((getattr(exc, 'context', None), getattr(exc, 'context_mark', None)),
+                       (getattr(exc, 'problem', None), getattr(exc, 'problem_mark', None))):
+        if text:
+            at = f'line {mark.line + 1}, column {mark.column + 1}: ' if mark else ''
+            parts.append(at + text)
+    return '; '.join(parts) or str(exc).splitlines()[0]
 
 
 def params_file_values(path, node_name: str = NODE_NAME, namespace: str = '/') -> dict:

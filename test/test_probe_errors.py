@@ -34,3 +34,18 @@ def test_spread_is_median_and_10th_90th_percentiles():
 def test_real_scans_skip_missing_files(tmp_path, capsys):
     assert probe_errors.real_scans(tmp_path) == []
     assert 'skipped kitti_spvnas' in capsys.readouterr().err
+
+
+def test_ground_beyond_feet_counts_low_points_farther_out_along_the_ray():
+    # the foot at 10 m, azimuth 0; ground 1 m beyond (counted), ground 0.05 m beyond (too
+    # close), 3 m beyond (too far), 1 m beyond but 0.3 m up (not ground) or 1 deg aside (another
+    # ray), and 1 m nearer (not beyond)
+    points = np.array([[10.0, 0.0], [11.0, 0.0], [10.05, 0.0], [13.0, 0.0], [11.0, 0.0],
+                       [11.0 * np.cos(np.radians(1.0)), 11.0 * np.sin(np.radians(1.0))],
+                       [9.0, 0.0]])
+    h = np.array([0.0, 0.0, 0.0, 0.0, 0.3, 0.0, 0.0])
+    counts = probe_errors.ground_beyond_feet(points, h, np.array([0]))
+    assert counts.tolist() == [1]
+    h[1] = np.nan  # no height: not ground
+    assert probe_errors.ground_beyond_feet(points, h, np.array([0])).tolist() == [0]
+    assert probe_errors.ground_beyond_feet(points, h, np.array([], dtype=int)).size == 0

@@ -141,6 +141,21 @@ def test_structure_errors(tmp_path):
                                           '  extra: 1\n'))
 
 
+@pytest.mark.parametrize('value, kinds', [('[0.1, 1]', 'double and int'),
+                                          ('[true, 1]', 'bool and int'),
+                                          ('["1", 2]', 'int and str')])
+def test_lists_mixing_kinds_are_refused_with_their_line(tmp_path, value, kinds):
+    # rcl refuses them ('Sequence should be of same type') in two log lines of its own
+    from gp_ground_segmentation.ros.config import read_params_file
+    text = ('/**:\n  ros__parameters:\n    a: [1.0, 2.0]\n    nested:\n      ok: ["x", "y"]\n'
+            f'      bad: {value}\n')
+    with pytest.raises(ParameterConfigError, match=f'line 6: a list mixes {kinds} values'):
+        read_params_file(_write(tmp_path, text))
+    same = text.replace(value, '[1.0, 2.5]')
+    assert read_params_file(_write(tmp_path, same))['/**']['ros__parameters']['nested'] == {
+        'ok': ['x', 'y'], 'bad': [1.0, 2.5]}
+
+
 def test_qos_overrides_and_builtins_are_accepted(tmp_path):
     path = _write(tmp_path, 'ground_segmentation:\n  ros__parameters:\n    use_sim_time: false\n'
                             '    qos_overrides:\n      /ground:\n        publisher:\n'

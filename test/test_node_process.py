@@ -100,8 +100,9 @@ def test_unreadable_params_file_is_one_fatal_line(tmp_path, make_path):
      'line 4: YAML aliases (*t) are not supported'),
     (b'/**:\n  ros__parameters:\n    ground_threshold_m: 0.25 # caf\xe9\n',
      'line 3: not UTF-8 text (byte 58: 0xe9)'),
+    (b'/**:\n  ros__parameters:\n    a: [0.5, 1]\n', 'line 3: a list mixes double and int'),
     (b'- just\n- a list\n', 'top level must be a mapping')],
-    ids=['flow', 'quote', 'indent', 'tab', 'alias', 'latin1', 'list'])
+    ids=['flow', 'quote', 'indent', 'tab', 'alias', 'latin1', 'mixed-list', 'list'])
 def test_params_file_that_is_not_yaml_is_one_fatal_line(tmp_path, text, where):
     # rcl's own parser reports such errors in two log lines naming its C sources (a file that
     # is not UTF-8 made the node's own check raise a traceback)

@@ -252,9 +252,9 @@ def _ros_yaml_loader():
 def read_params_file(path) -> dict:
     """The YAML document of a parameter file, as rcl reads it (a mapping of node names;
     empty file: {}); ParameterConfigError in one line when it is unreadable, not UTF-8, not
-    YAML, uses aliases (rcl refuses them) or is not a mapping. The node calls it before rcl
-    parses the file, whose parser reports such errors in two log lines naming its own source
-    files."""
+    YAML, not a mapping, or holds what rcl refuses: aliases and lists mixing kinds of values.
+    The node calls it before rcl parses the file, whose parser reports such errors in two log
+    lines naming its own source files."""
     import yaml  # local: the core does not need PyYAML
 
     path = Path(path)
@@ -277,11 +277,41 @@ def read_params_file(path) -> dict:
         raise ParameterConfigError(
             f'{path}: line {alias.start_mark.line + 1}: YAML aliases (*{alias.anchor}) are not '
             'supported by ROS 2 parameter files; write the value out')
+    mixed = _mixed_sequence(yaml.compose(text, Loader=_ros_yaml_loader()))
+    if mixed is not None:
+        line, kinds = mixed
+        raise ParameterConfigError(
+            f'{path}: line {line}: a list mixes {" and ".join(kinds)} values, which ROS 2 '
+            'parameter files do not allow; write every element alike (1.0, not 1, in a list '
+            'of doubles)')
     if doc is None:
         doc = {}
     if not isinstance(doc, dict):
         raise ParameterConfigError(f'{path}: top level must be a mapping of node names')
     return doc
+
+
+def _mixed_sequence(node):
+    """(line, sorted kinds) of the first YAML list whose scalar elements are of different
+    kinds (int, double, string, bool), which rcl refuses; None when there is none."""
+    import yaml
+
+    if isinstance(node, yaml.SequenceNode):
+        kinds = {child.tag.rsplit(':', 1)[-1] for child in node.value
+                 if isinstance(child, yaml.ScalarNode)}
+        kinds = {'double' if kind == 'float' else kind for kind in kinds}
+        if len(kinds) > 1:
+            return node.start_mark.line + 1, sorted(kinds)
+        children = node.value
+    elif isinstance(node, yaml.MappingNode):
+        children = [value for _, value in node.value]
+    else:
+        return None
+    for child in children:
+        found = _mixed_sequence(child)
+        if found is not None:
+            return found
+    return None
 
 
 def _yaml_error_text(exc) -> str:

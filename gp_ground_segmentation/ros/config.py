@@ -238,11 +238,17 @@ _EXPONENT_FLOAT = re.compile(r'^[-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)[eE][-+]?[0-9]+
 
 
 def _ros_yaml_loader():
-    """PyYAML's SafeLoader reading numbers with an exponent as floats, as rcl does."""
+    """PyYAML's SafeLoader reading numbers with an exponent as floats, as rcl does, and
+    keeping the first alias it composes (``first_alias``, an AliasEvent; rcl refuses them)."""
     import yaml
 
     class Loader(yaml.SafeLoader):
-        pass
+        first_alias = None
+
+        def compose_node(self, parent, index):
+            if self.first_alias is None and self.check_event(yaml.AliasEvent):
+                self.first_alias = self.peek_event()
+            return super().compose_node(parent, index)
 
     Loader.add_implicit_resolver('tag:yaml.org,2002:float', _EXPONENT_FLOAT,
                                  list('-+0123456789.'))
@@ -267,17 +273,22 @@ def read_params_file(path) -> dict:
         line = exc.object.count(b'\n', 0, exc.start) + 1
         raise ParameterConfigError(f'{path}: line {line}: not UTF-8 text (byte {exc.start}: '
                                    f'0x{exc.object[exc.start]:02x})') from None
+    # one parse: the node tree (for the checks below), then the document built from it, as
+    # yaml.load builds it
+    loader = _ros_yaml_loader()(text)
     try:
-        doc = yaml.load(text, Loader=_ros_yaml_loader())  # noqa: S506 - a SafeLoader
-        alias = next((event for event in yaml.parse(text, Loader=_ros_yaml_loader())
-                      if isinstance(event, yaml.AliasEvent)), None)
+        node = loader.get_single_node()
+        doc = None if node is None else loader.construct_document(node)
     except yaml.YAMLError as exc:
         raise ParameterConfigError(f'{path}: not valid YAML ({_yaml_error_text(exc)})') from None
+    finally:
+        loader.dispose()
+    alias = loader.first_alias
     if alias is not None:
         raise ParameterConfigError(
             f'{path}: line {alias.start_mark.line + 1}: YAML aliases (*{alias.anchor}) are not '
             'supported by ROS 2 parameter files; write the value out')
-    mixed = _mixed_sequence(yaml.compose(text, Loader=_ros_yaml_loader()))
+    mixed = _mixed_sequence(node)
     if mixed is not None:
         line, kinds = mixed
         raise ParameterConfigError(

@@ -45,7 +45,7 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 from gp_ground_segmentation.tools.evaluation import (  # noqa: E402
-    RELLIS_3D, ground_truth_from_labels, pooled_metrics, truth_metrics)
+    RELLIS_3D, SEMANTIC_KITTI, ground_truth_from_labels, pooled_metrics, truth_metrics)
 
 
 def _find_data_dir() -> Path:
@@ -127,9 +127,29 @@ def _missing(path: Path) -> bool:
     return False
 
 
+def labeled_real_files(data_dir: Path = DATA_DIR) -> list:
+    """(scan, .bin path, .label path, label ontology) of every labelled real scan the
+    benchmarks know, in stream order: the spvnas SemanticKITTI scan (``kitti_spvnas``), KITTI
+    00 frames 0-2 (``kitti00_000000`` ..) and the RELLIS-3D scan (``rellis3d_000001``). The
+    one list of their files for the loaders below and the probes."""
+    labeled = data_dir / 'labeled'
+    kitti00 = [labeled / f'semantickitti_seq00_{i:06d}' for i in range(3)]
+    rellis = labeled / 'rellis3d_examplebundle_000001'
+    return ([('kitti_spvnas', data_dir / LABELED_BIN, data_dir / LABELED_LABEL, SEMANTIC_KITTI)]
+            + [(f'kitti00_{i:06d}', stem.with_suffix('.bin'), stem.with_suffix('.label'),
+                SEMANTIC_KITTI) for i, stem in enumerate(kitti00)]
+            + [('rellis3d_000001', rellis.with_suffix('.bin'), rellis.with_suffix('.label'),
+                RELLIS_3D)])
+
+
+def _labeled_files(data_dir: Path, prefix: str) -> list:
+    """The entries of :func:`labeled_real_files` whose scan name starts with ``prefix``."""
+    return [entry for entry in labeled_real_files(data_dir) if entry[0].startswith(prefix)]
+
+
 def load_labeled_kitti(data_dir: Path = DATA_DIR) -> Optional[Dataset]:
     """The SemanticKITTI-labelled scan with its truth (vegetation non-ground)."""
-    bin_path, label_path = data_dir / LABELED_BIN, data_dir / LABELED_LABEL
+    ((_, bin_path, label_path, _),) = _labeled_files(data_dir, 'kitti_spvnas')
     if _missing(bin_path) or _missing(label_path):
         return None
     pts, classes = _read_labeled_pair(bin_path, label_path)
@@ -151,15 +171,12 @@ def _read_labeled_pair(bin_path: Path, label_path: Path):
 def load_kitti00_labeled(data_dir: Path = DATA_DIR) -> Optional[Dataset]:
     """KITTI 00 frames 0-2 with SemanticKITTI labels (about one scene), in stream order."""
     frames = []
-    for i in range(3):
-        stem = data_dir / 'labeled' / f'semantickitti_seq00_{i:06d}'
-        bin_path, label_path = stem.with_suffix('.bin'), stem.with_suffix('.label')
+    for name, bin_path, label_path, _ in _labeled_files(data_dir, 'kitti00_'):
         if _missing(bin_path) or _missing(label_path):
             continue
         pts, classes = _read_labeled_pair(bin_path, label_path)
         truth, evaluated = ground_truth_from_labels(classes)
-        frames.append(Frame(f'kitti00_{i:06d}', pts, True, truth, evaluated,
-                            KITTI_SENSOR_HEIGHT_M))
+        frames.append(Frame(name, pts, True, truth, evaluated, KITTI_SENSOR_HEIGHT_M))
     if not frames:
         return None
     return Dataset('kitti00_labeled', frames, 'KITTI 00 frames 0-2, SemanticKITTI labels '
@@ -178,17 +195,15 @@ def rellis_mount_height(points: np.ndarray, truth: np.ndarray) -> float:
 
 def load_rellis(data_dir: Path = DATA_DIR) -> Optional[Dataset]:
     """The RELLIS-3D Ouster OS1-64 scan (organised, (0, 0, 0) no-returns) with its labels."""
-    stem = data_dir / 'labeled' / 'rellis3d_examplebundle_000001'
-    bin_path, label_path = stem.with_suffix('.bin'), stem.with_suffix('.label')
+    ((name, bin_path, label_path, ontology),) = _labeled_files(data_dir, 'rellis3d_')
     if _missing(bin_path) or _missing(label_path):
         return None
     pts, classes = _read_labeled_pair(bin_path, label_path)
     # RELLIS-3D ontology, not SemanticKITTI's (gp_ground_segmentation.tools.evaluation)
-    truth, evaluated = ground_truth_from_labels(classes, ontology=RELLIS_3D)
+    truth, evaluated = ground_truth_from_labels(classes, ontology=ontology)
     # The intensity is normalised to ~0..0.012, not KITTI's 0..1 remission: treated as absent so
     # intensity-based steps tuned for remission (Patchwork++'s RNR) are not misled.
-    frame = Frame('rellis3d_000001', pts, False, truth, evaluated,
-                  rellis_mount_height(pts, truth))
+    frame = Frame(name, pts, False, truth, evaluated, rellis_mount_height(pts, truth))
     return Dataset('rellis3d', [frame], 'RELLIS-3D off-road Ouster OS1-64 scan, organised '
                    '(ground dirt/grass/asphalt/concrete/puddle/mud; void ignored)', 'real')
 

@@ -43,7 +43,7 @@ import common  # noqa: E402
 
 from gp_ground_segmentation import GroundSegmenter  # noqa: E402
 from gp_ground_segmentation.tools.evaluation import (  # noqa: E402
-    RELLIS_3D, SEMANTIC_KITTI, ground_truth_from_labels, truth_metrics)
+    SEMANTIC_KITTI, ground_truth_from_labels, truth_metrics)
 
 RESULTS = Path(__file__).resolve().parent / 'RESULTS.md'
 NEIGHBOUR_RADIUS_M = 0.2  # "right beside": a few beam spacings on a 64-beam scan at 10 m
@@ -74,16 +74,8 @@ RELLIS_3D_NAMES = {
 def real_scans(data_dir: Path = common.DATA_DIR) -> list:
     """(name, points, classes, ontology, class names, remission?) of every labelled real scan
     found; missing files are skipped with a line on stderr."""
-    labeled = data_dir / 'labeled'
-    pairs = [('kitti_spvnas', data_dir / common.LABELED_BIN, data_dir / common.LABELED_LABEL,
-              SEMANTIC_KITTI)]
-    pairs += [(f'kitti00_{i:06d}', labeled / f'semantickitti_seq00_{i:06d}.bin',
-               labeled / f'semantickitti_seq00_{i:06d}.label', SEMANTIC_KITTI)
-              for i in range(3)]
-    pairs.append(('rellis3d_000001', labeled / 'rellis3d_examplebundle_000001.bin',
-                  labeled / 'rellis3d_examplebundle_000001.label', RELLIS_3D))
     scans = []
-    for name, bin_path, label_path, ontology in pairs:
+    for name, bin_path, label_path, ontology in common.labeled_real_files(data_dir):
         if not (bin_path.is_file() and label_path.is_file()):
             print(f'[data] skipped {name}: {bin_path} or its labels not found', file=sys.stderr)
             continue

@@ -210,6 +210,23 @@ class RosHarness:
         return (w.frames_processed + w.frames_dropped + w.frames_failed >= w.frames_received
                 and not self.node._slot)  # noqa: SLF001 - read-only peek at the slot
 
+    def wait_drained(self, timeout=20.0, quiet_s=1.0) -> bool:
+        """Wait until the node is settled and has received nothing new for ``quiet_s``.
+
+        After a burst, DDS may still hand the node a frame it queued earlier: one settled
+        snapshot then reads ``frames_received`` one ahead of the recorded fates (seen once in CI,
+        a 42nd frame arriving after the 41st was recorded). Quiet for a second means the burst
+        is over and the counts can be read as one consistent set."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if not wait_for(self.node_settled, max(0.0, deadline - time.monotonic())):
+                return False
+            received = self.node.window.frames_received
+            time.sleep(quiet_s)
+            if self.node_settled() and self.node.window.frames_received == received:
+                return True
+        return False
+
     def statuses(self):
         with self.lock:
             return [s for arr in self.diagnostics for s in arr.status

@@ -29,7 +29,7 @@ import threading
 import time
 
 import pytest
-from conftest import status_values, wait_for
+from conftest import status_values
 
 from gp_ground_segmentation import GroundSegmenter
 
@@ -116,7 +116,7 @@ def test_overload_bounded_slot_counted_drops_flat_rss(kitti_msgs, ros_harness, q
             next_t += period
             time.sleep(max(0.0, next_t - time.monotonic()))
         w = node.window
-        assert wait_for(h.node_settled, 20.0)
+        assert h.wait_drained(20.0), 'the node did not settle after the burst'
         rss.append((time.monotonic() - t0, _rss_mb()))
     finally:
         stop.set()

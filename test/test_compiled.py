@@ -25,7 +25,7 @@ def test_reference_until_compiled_then_the_kernel():
     import numba
     kernel = numba.njit(_plus_one)  # no disk cache: a fresh compilation
     assert compiled.run(True, kernel, _minus_one, 1.0) == 0.0  # queued, reference meanwhile
-    assert compiled.wait(60.0)
+    assert compiled.wait(300.0)
     assert compiled.run(True, kernel, _minus_one, 1.0) == 2.0
     assert compiled.run(True, kernel, _minus_one, 1) == 0  # other types: compiled separately
     assert compiled.run(False, kernel, _minus_one, 1.0) == 0.0  # not asked for
@@ -36,7 +36,7 @@ def test_a_kernel_that_does_not_compile_leaves_the_reference():
     import numba
     kernel = numba.njit(_broken)
     assert compiled.run(True, kernel, _minus_one, 1.0) == 0.0
-    assert compiled.wait(60.0)
+    assert compiled.wait(300.0)
     for _ in range(2):  # never retried, never raised
         assert compiled.run(True, kernel, _minus_one, 1.0) == 0.0
 
@@ -63,7 +63,7 @@ def test_argument_types_seen_once_are_not_typed_again_and_others_still_wait():
              np.asfortranarray(base.reshape(2, 3))]
     for x in kinds:
         assert compiled.run(True, kernel, _sum_minus_one, x) == x.sum() - 1.0  # not yet
-        assert compiled.wait(60.0)
+        assert compiled.wait(300.0)
         assert compiled.run(True, kernel, _sum_minus_one, x) == x.sum() + 1.0
         assert compiled.run(True, kernel, _sum_minus_one, x) == x.sum() + 1.0  # key known
     assert len(set(compiled._argument_key((x,)) for x in kinds)) == len(kinds)
@@ -95,10 +95,10 @@ def test_compile_later_queues_a_compilation_and_runs_nothing():
     import numba
     kernel = numba.njit(_plus_one)  # no disk cache: a fresh compilation
     compiled.compile_later(kernel, 1.0)  # returns at once: the compiler thread compiles it
-    assert compiled.wait(60.0)
+    assert compiled.wait(300.0)
     assert len(kernel.signatures) == 1 and kernel(1.0) == 2.0
     compiled.compile_later(kernel, 1.0)  # compiled already: nothing queued again
-    assert compiled.wait(60.0) and len(kernel.signatures) == 1
+    assert compiled.wait(300.0) and len(kernel.signatures) == 1
     compiled.compile_later(None, 1.0)  # no numba: nothing
 
 

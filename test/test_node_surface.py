@@ -80,11 +80,25 @@ def test_switches_are_live_settable_and_validated(kitti_msgs, ros_harness):
     assert wait_for(lambda: h.surface_for(msg.header.stamp), 10.0) is not None
 
 
-def test_surface_is_built_only_while_subscribed(kitti_msgs, ros_harness):
+def test_surface_is_built_only_while_subscribed(kitti_msgs, ros_harness, monkeypatch):
     """Lazy surface: with publish_ground_surface on but no subscriber on ground_surface, the
-    node spends nothing on it (no 'surface' stage time); a subscriber turns it back on."""
+    node spends nothing on it (no 'surface' stage time); a subscriber turns it back on, and the
+    surface cloud is built only after ground and obstacles are published."""
+    from gp_ground_segmentation.ros import node as node_module
     h = ros_harness()
     node = h.node
+    events = []  # the worker's calls, in order: which publisher, or the surface build
+
+    def recording(name, call):
+        def record(*args, **kwargs):
+            events.append(name)
+            return call(*args, **kwargs)
+        return record
+    monkeypatch.setattr(node_module, 'add_surface',
+                        recording('build surface', node_module.add_surface))
+    for name in ('ground', 'obstacles', 'surface'):
+        publisher = getattr(node, f'_pub_{name}')
+        monkeypatch.setattr(publisher, 'publish', recording(name, publisher.publish))
     subscriptions = list(h.peer.subscriptions)
     [surface_sub] = [s for s in subscriptions if s.topic_name.endswith('/ground_surface')]
     topic, qos = surface_sub.topic_name, surface_sub.qos_profile
@@ -92,6 +106,7 @@ def test_surface_is_built_only_while_subscribed(kitti_msgs, ros_harness):
     assert wait_for(lambda: node.count_subscribers(topic) == 0, 10.0)
     h.publish_and_wait(kitti_msgs[0])
     assert node.window.frames_processed == 1
+    assert events == ['ground', 'obstacles']
     assert not any('surface' in t for t in node.window.snapshot()['timings']), \
         'surface built with nobody subscribed'
     received = []
@@ -99,13 +114,12 @@ def test_surface_is_built_only_while_subscribed(kitti_msgs, ros_harness):
                                qos)
     assert wait_for(lambda: node.count_subscribers(topic) == 1, 10.0)
     msg = kitti_msgs[1]
+    events.clear()
     h.publish_and_wait(msg)
     assert wait_for(lambda: any(m.header.stamp == msg.header.stamp for m in received), 10.0)
     timing = node.window.snapshot()['timings'][-1]
     assert 'surface' in timing
-    # ground and obstacles go out before the surface cloud is built: from their publication
-    # to the end of the frame the node still builds (and publishes) the surface cloud
-    after_ground = timing['handoff'] + timing['total'] + timing['publish'] \
-        - timing['ground_published']
-    assert timing['ground_published'] > 0
-    assert after_ground >= 0.5 * timing['surface'], timing
+    # ground and obstacles go out before the surface cloud is built (their subscribers do not
+    # wait for it); checked by the order of the calls, not by times, which load can skew
+    assert events == ['ground', 'obstacles', 'build surface', 'surface']
+    assert timing['ground_published'] > 0, timing

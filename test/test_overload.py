@@ -32,6 +32,7 @@ import pytest
 from conftest import status_values
 
 from gp_ground_segmentation import GroundSegmenter
+from gp_ground_segmentation.core import compiled
 
 PUBLISH_HZ = 50.0  # 5x the 10 Hz of a spinning LiDAR (Hz)
 RUN_S = 5.0  # publishing time per case (s)
@@ -65,6 +66,9 @@ class _SlowSegmenter:
     def set_params(self, params):
         self._inner.set_params(params)
 
+    def warm_up(self):
+        self._inner.warm_up()
+
     def segment(self, points, details=False):
         time.sleep(EXTRA_DELAY_S)
         return self._inner.segment(points, details=details)
@@ -81,6 +85,9 @@ def test_overload_bounded_slot_counted_drops_flat_rss(kitti_msgs, ros_harness, q
                                 Parameter('queue_size', value=queue_size)]})
     node = h.node
     assert node._slot.maxlen == queue_size
+    # no kernel may compile during the RSS window (the compiler's memory would count as growth;
+    # a concern only when this test runs alone on a cold numba cache)
+    assert compiled.wait(300.0)
 
     occupancy = {'max': 0, 'samples': 0}
     stop = threading.Event()
@@ -122,34 +129,36 @@ def test_overload_bounded_slot_counted_drops_flat_rss(kitti_msgs, ros_harness, q
         stop.set()
         watcher.join(2.0)
 
-    received = w.frames_received
+    # one consistent copy of the counts (taken under the window's lock), asserted on alone
+    counts = w.snapshot()
+    received, processed = counts['frames_received'], counts['frames_processed']
+    dropped, failed = counts['frames_dropped'], counts['frames_failed']
     # best-effort DDS may lose part of a 50 Hz burst of 2 MB clouds before the callback (not
     # the node's doing, and not countable by it); enough must arrive to overload the node
     assert received >= 10, f'only {received} of {sent} frames arrived'
     assert occupancy['max'] <= queue_size and occupancy['samples'] > 100
-    assert w.frames_processed + w.frames_dropped + w.frames_failed == received
-    assert w.frames_failed == 0
-    assert w.frames_dropped > 0
+    assert processed + dropped + failed == received
+    assert failed == 0
+    assert dropped > 0
     # the slot is latest-wins, not a queue: most of the burst is dropped, never buffered
-    assert w.frames_processed < received
+    assert processed < received
     with h.lock:
         outputs += len(h.ground)
-    assert outputs <= w.frames_processed
+    assert outputs <= processed
 
     # a status built while the last frame was still being processed may arrive after the
     # drain above: wait for one built on the final counts
-    final = {'frames_dropped': str(w.frames_dropped), 'frames_processed': str(w.frames_processed)}
+    final = {'frames_dropped': str(dropped), 'frames_processed': str(processed)}
     status = h.wait_status(lambda s: all(status_values(s)[k] == v for k, v in final.items()))
     assert status is not None, f'no diagnostics with the final counts {final}'
     assert status.level == DiagnosticStatus.WARN
     assert 'dropped' in status.message
     values = status_values(status)
     assert int(values['frames_received']) == received
-    assert int(values['frames_processed']) == w.frames_processed
     assert int(values['drops_in_window']) > 0
 
     print(f'queue_size {queue_size}: sent {sent}, received {received}, processed '
-          f'{w.frames_processed}, dropped {w.frames_dropped}, max slot {occupancy["max"]}, '
+          f'{processed}, dropped {dropped}, max slot {occupancy["max"]}, '
           f'RSS after warm-up {rss[0][1]:.0f} MB -> end {rss[-1][1]:.0f} MB')
     assert len(rss) >= 3, rss
     growth = max(mb for _, mb in rss) - rss[0][1]

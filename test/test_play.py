@@ -2,6 +2,7 @@
 """gp-ground-seg play / hz against the live node (real rclpy, separate processes)."""
 
 import os
+import signal
 import subprocess
 import time
 import uuid
@@ -34,7 +35,14 @@ def _tool(*args):
     return start_module('gp_ground_segmentation.tools.cli', *args, stderr=subprocess.PIPE)
 
 
-def test_play_feeds_the_live_node_with_restamp_and_clock(pcd_dir, ros_harness):
+def _stop(proc):
+    """Kill ``proc`` if a failed test left it running, and reap it."""
+    if proc.poll() is None:
+        proc.kill()
+        proc.communicate(timeout=30)
+
+
+def test_play_feeds_the_live_node_with_restamp_and_clock(pcd_dir, ros_harness, request):
     from rclpy.parameter import Parameter
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from rosgraph_msgs.msg import Clock
@@ -63,11 +71,15 @@ def test_play_feeds_the_live_node_with_restamp_and_clock(pcd_dir, ros_harness):
     h.peer.create_subscription(Clock, '/clock', lambda m: clocks.append(m), 10)
     h.peer.create_subscription(PointCloud2, f'{prefix}/ground', ground.append, deep)
     h.peer.create_subscription(PointCloud2, f'{prefix}/obstacles', obstacles.append, deep)
-    hz = _tool('hz', f'{prefix}/ground', f'{prefix}/obstacles', '--duration', '20',
+    # hz runs until it is interrupted below, once every frame it should count was acked: a
+    # fixed --duration would start counting before play has even started (a few seconds, more
+    # on a loaded machine) and could close before the last frame. --duration is a safety net.
+    hz = _tool('hz', f'{prefix}/ground', f'{prefix}/obstacles', '--duration', '300',
                '--period', '100', '--qos-reliability', 'reliable', '--qos-depth', str(FRAMES))
+    request.addfinalizer(lambda: _stop(hz))
     # hz subscribes once it has seen the topics: wait for it (2 peer subscriptions + hz)
     assert wait_for(lambda: h.node.count_subscribers(f'{prefix}/ground') >= 3
-                    and h.node.count_subscribers(f'{prefix}/obstacles') >= 3, 15.0)
+                    and h.node.count_subscribers(f'{prefix}/obstacles') >= 3, 60.0)
     play = _tool('play', str(pcd_dir), '--topic', f'{prefix}/points', '--frame-id', 'base_lidar',
                  '--rate', '2', '--restamp', '--clock', '--wait-for-subscriber', '10',
                  '--delay', '1', '--qos-reliability', 'reliable', '--qos-depth', str(FRAMES))
@@ -83,6 +95,10 @@ def test_play_feeds_the_live_node_with_restamp_and_clock(pcd_dir, ros_harness):
     stamps = [m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec for m in ground]
     assert stamps == pytest.approx([0.1 * i for i in range(FRAMES)], abs=1e-6)
     assert clocks and max(c.clock.sec + 1e-9 * c.clock.nanosec for c in clocks) >= 0.4 - 1e-6
+    from rclpy.duration import Duration
+    for publisher in (h.node._pub_ground, h.node._pub_obstacles):  # noqa: SLF001
+        assert publisher.wait_for_all_acked(Duration(seconds=30)), 'hz did not ack every frame'
+    hz.send_signal(signal.SIGINT)  # Ctrl-C: hz prints its summary and exits 0
     hz_out, hz_err = hz.communicate(timeout=60)
     assert hz.returncode == 0, hz_err
     summary = [ln for ln in hz_out.splitlines() if ln.startswith(f'{prefix}/ground:')][-1]
@@ -100,7 +116,6 @@ def test_play_keeps_the_recorded_pace(pcd_dir):
 
 
 def test_play_loop_stops_cleanly_on_sigint(pcd_dir):
-    import signal
     play = _tool('play', str(pcd_dir), '--topic', '/gp_test_loop', '--loop',
                  '--wait-for-subscriber', '0')
     try:

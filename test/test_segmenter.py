@@ -499,7 +499,7 @@ def test_compiled_length_factors_equal_the_numpy_reference(seed):
     args = (slope, density, candidate_r, training, 0.02, 0.9, bool(seed % 2), 0.05, 50.0,
             int(rng.integers(0, 6)))
     module._length_factors_fused(*args)  # queues the passes' compilation
-    assert compiled.wait(120.0)
+    assert compiled.wait(300.0)
     passes = (module._usable_bins_compiled, module._ring_deviation_compiled,
               module._raw_length_factors_compiled, module._smooth_compiled)
     assert not any(compiled.failed(k) for k in passes)  # else the twins ran: proves nothing

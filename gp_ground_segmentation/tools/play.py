@@ -136,12 +136,14 @@ class _Player:
         self.published += 1
 
     def flush(self, timeout_s: float = 5.0) -> None:
-        """A reliable publisher: wait (at most ``timeout_s``) until every subscriber has
-        acknowledged every frame, so that leaving right after the last one loses nothing."""
+        """Reliable publishers (the frames' if so, /clock's always): wait (at most
+        ``timeout_s`` each) until every subscriber has acknowledged every message, so that
+        leaving right after the last one loses nothing."""
         from rclpy.duration import Duration
         from rclpy.qos import ReliabilityPolicy
-        if self.pub.qos_profile.reliability == ReliabilityPolicy.RELIABLE:
-            self.pub.wait_for_all_acked(Duration(nanoseconds=int(timeout_s * 1e9)))
+        for pub in (self.pub, self.clock_pub):
+            if pub is not None and pub.qos_profile.reliability == ReliabilityPolicy.RELIABLE:
+                pub.wait_for_all_acked(Duration(nanoseconds=int(timeout_s * 1e9)))
 
 
 def cmd_play(args) -> int:

@@ -63,14 +63,21 @@ def start_module(module: str, *args, env_extra=None, stderr=subprocess.STDOUT, *
                             stderr=stderr, text=True, env=module_env(env_extra), **kwargs)
 
 
-def wait_listening(proc) -> list:
-    """Lines of a started node's output up to its 'listening on' line (it is up)."""
+def wait_listening(proc, timeout=300.0) -> list:
+    """Lines of a started node's output up to its 'listening on' line (it is up). A node that
+    stalls before it is killed after ``timeout`` s (its output then ends): a failure, not a
+    hung test run."""
     lines = []
-    for line in proc.stdout:
-        lines.append(line)
-        if 'listening on' in line:
-            return lines
-    raise AssertionError(f'node did not start: {"".join(lines)}')
+    watchdog = threading.Timer(timeout, proc.kill)
+    watchdog.start()
+    try:
+        for line in proc.stdout:
+            lines.append(line)
+            if 'listening on' in line:
+                return lines
+    finally:
+        watchdog.cancel()
+    raise AssertionError(f'node did not start within {timeout:.0f} s: {"".join(lines)}')
 
 
 @pytest.fixture(scope='session')
@@ -153,6 +160,7 @@ class RosHarness:
         self.peer = None
         self.executor = None
         self.thread = None
+        self._stop_spinning = threading.Event()
         try:
             self.node = GroundSegmentationNode(context=self.context, **(node_kwargs or {}))
             self.peer = rclpy.create_node('gp_test_peer', context=self.context)
@@ -178,7 +186,7 @@ class RosHarness:
             self.executor = MultiThreadedExecutor(num_threads=3, context=self.context)
             self.executor.add_node(self.node)
             self.executor.add_node(self.peer)
-            self.thread = threading.Thread(target=self.executor.spin, daemon=True)
+            self.thread = threading.Thread(target=self._spin, daemon=True)
             self.thread.start()
             assert wait_for(lambda: self.pub.get_subscription_count() > 0, 10.0), \
                 'node subscription not discovered'
@@ -267,14 +275,23 @@ class RosHarness:
             return None
         return wait_for(find, timeout)
 
+    def _spin(self):
+        """Executor.spin, stopped by close() between two spin_once calls. Executor.shutdown
+        from another thread while spin() runs can drop the executor's guard condition under a
+        spin_once that is building its wait set ('NoneType' object has no attribute 'handle'
+        in the spin thread, seen under load): close() stops this loop first."""
+        while not self._stop_spinning.is_set() and self.context.ok():
+            self.executor.spin_once(timeout_sec=0.05)
+
     def close(self):
         import gc
 
         import rclpy
-        if self.executor is not None:
-            self.executor.shutdown(timeout_sec=5.0)
+        self._stop_spinning.set()
         if self.thread is not None:
             self.thread.join(timeout=5.0)
+        if self.executor is not None:
+            self.executor.shutdown(timeout_sec=5.0)
         if self.node is not None:
             self.node.destroy_node()
         if self.peer is not None:

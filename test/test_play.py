@@ -4,6 +4,7 @@
 import os
 import signal
 import subprocess
+import threading
 import time
 import uuid
 
@@ -118,15 +119,19 @@ def test_play_keeps_the_recorded_pace(pcd_dir):
 def test_play_loop_stops_cleanly_on_sigint(pcd_dir):
     play = _tool('play', str(pcd_dir), '--topic', '/gp_test_loop', '--loop',
                  '--wait-for-subscriber', '0')
+    watchdog = threading.Timer(120.0, play.kill)  # a stalled start fails, not hangs, the run
+    watchdog.start()
     try:
         for line in play.stderr:  # started: the graph is up and frames are going out
             if 'publishing' in line:
                 break
+        watchdog.cancel()
         time.sleep(1.0)
         play.send_signal(signal.SIGINT)
         play.send_signal(signal.SIGINT)
         _, err = play.communicate(timeout=30)
     finally:
+        watchdog.cancel()
         if play.poll() is None:
             play.kill()
     assert play.returncode == 0 and 'Traceback' not in err, err

@@ -18,23 +18,37 @@ import pytest
 
 def _claim_domain_id(first: int = 1, last: int = 100):
     """A DDS domain id in first..last that no other process holding this claim uses, and the
-    open lock file that holds it (kept open for the whole session; the lock goes with the
-    process). A pid-derived id alone put two sessions in one domain about once in 100 pairs.
-    Starts at the pid-derived id; falls back to it when every id is held."""
+    open lock file descriptor that holds it (kept open for the whole session; the lock goes
+    with the process). A pid-derived id alone put two sessions in one domain about once in 100
+    pairs. Starts at the pid-derived id; an id whose lock file cannot be opened (another user's,
+    say) counts as taken; falls back to the pid-derived id when every id is taken or the
+    temporary directory is unusable."""
     import fcntl
     import tempfile
     span = last - first + 1
     start = os.getpid() % span
+    try:
+        folder = Path(tempfile.gettempdir())
+    except OSError:  # no usable temporary directory: no claims, the pid-derived id
+        return first + start, None
     for k in range(span):
         domain = first + (start + k) % span
-        path = Path(tempfile.gettempdir()) / f'gp_ground_seg_domain_{domain}.lock'
-        handle = open(path, 'a')
+        path = folder / f'gp_ground_seg_domain_{domain}.lock'
         try:
-            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
+        except PermissionError:  # another user's file: a read-only descriptor locks too
+            try:
+                fd = os.open(path, os.O_RDONLY)
+            except OSError:
+                continue
         except OSError:
-            handle.close()
             continue
-        return domain, handle
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            os.close(fd)
+            continue
+        return domain, fd
     return first + start, None
 
 
@@ -64,9 +78,8 @@ def start_module(module: str, *args, env_extra=None, stderr=subprocess.STDOUT, *
 
 
 def wait_listening(proc, timeout=300.0) -> list:
-    """Lines of a started node's output up to its 'listening on' line (it is up). A node that
-    stalls before it is killed after ``timeout`` s (its output then ends): a failure, not a
-    hung test run."""
+    """Lines of a started node's output up to its 'listening on' line (it is up). A node not
+    up after ``timeout`` s is killed (its output then ends): a failure, not a hung test run."""
     lines = []
     watchdog = threading.Timer(timeout, proc.kill)
     watchdog.start()
@@ -288,6 +301,8 @@ class RosHarness:
 
         import rclpy
         self._stop_spinning.set()
+        if self.executor is not None:
+            self.executor.wake()  # end the spin_once waiting now
         if self.thread is not None:
             self.thread.join(timeout=5.0)
         if self.executor is not None:

@@ -84,7 +84,7 @@ def test_surface_is_built_only_while_subscribed(kitti_msgs, ros_harness, monkeyp
     """Lazy surface: with publish_ground_surface on but no subscriber on ground_surface, the
     node spends nothing on it (no 'surface' stage time); a subscriber turns it back on, and the
     surface cloud is built only after ground and obstacles are published."""
-    from gp_ground_segmentation.ros import node as node_module
+    from gp_ground_segmentation.ros import pipeline
     h = ros_harness()
     node = h.node
     events = []  # the worker's calls, in order: which publisher, or the surface build
@@ -94,8 +94,9 @@ def test_surface_is_built_only_while_subscribed(kitti_msgs, ros_harness, monkeyp
             events.append(name)
             return call(*args, **kwargs)
         return record
-    monkeypatch.setattr(node_module, 'add_surface',
-                        recording('build surface', node_module.add_surface))
+    # the build itself, wherever it is called from (process_cloud or add_surface)
+    monkeypatch.setattr(pipeline, 'surface_cloud',
+                        recording('build surface', pipeline.surface_cloud))
     for name in ('ground', 'obstacles', 'surface'):
         publisher = getattr(node, f'_pub_{name}')
         monkeypatch.setattr(publisher, 'publish', recording(name, publisher.publish))

@@ -129,14 +129,19 @@ def test_overload_bounded_slot_counted_drops_flat_rss(kitti_msgs, ros_harness, q
         stop.set()
         watcher.join(2.0)
 
-    # Every received frame has exactly one fate: a copy of the counts (taken under the
-    # window's lock) in which processed + dropped + failed == received. A frame lost or counted
-    # twice never gives one; a frame DDS delivers late only defers it (the drain above makes
-    # that rare, and then the next copy is taken), so the counts asserted on are one set.
+    # Every received frame has exactly one fate: two copies of the counts (each taken under
+    # the window's lock) 0.5 s apart, equal, with processed + dropped + failed == received. A
+    # frame lost or counted twice never gives them; a frame DDS delivers late (the drain above
+    # makes that rare) only defers them. The counts asserted on below are that one set.
+    keys = ('frames_received', 'frames_processed', 'frames_dropped', 'frames_failed')
+
     def fates_match_arrivals():
+        first = w.snapshot()
+        time.sleep(0.5)
         c = w.snapshot()
         total = c['frames_processed'] + c['frames_dropped'] + c['frames_failed']
-        return c if total == c['frames_received'] else None
+        steady = all(first[k] == c[k] for k in keys)
+        return c if steady and total == c['frames_received'] else None
     counts = wait_for(fates_match_arrivals, 20.0)
     assert counts is not None, f'fates never matched arrivals: {w.snapshot()}'
     received, processed = counts['frames_received'], counts['frames_processed']

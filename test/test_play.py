@@ -40,7 +40,7 @@ def _stop(proc):
     """Kill ``proc`` if a failed test left it running, and reap it."""
     if proc.poll() is None:
         proc.kill()
-        proc.communicate(timeout=30)
+        proc.wait(timeout=30)
 
 
 def test_play_feeds_the_live_node_with_restamp_and_clock(pcd_dir, ros_harness, request):
@@ -72,18 +72,28 @@ def test_play_feeds_the_live_node_with_restamp_and_clock(pcd_dir, ros_harness, r
     h.peer.create_subscription(Clock, '/clock', lambda m: clocks.append(m), 10)
     h.peer.create_subscription(PointCloud2, f'{prefix}/ground', ground.append, deep)
     h.peer.create_subscription(PointCloud2, f'{prefix}/obstacles', obstacles.append, deep)
-    # hz runs until it is interrupted below, once every frame it should count was acked: a
-    # fixed --duration would start counting before play has even started (a few seconds, more
-    # on a loaded machine) and could close before the last frame. --duration is a safety net.
-    hz = _tool('hz', f'{prefix}/ground', f'{prefix}/obstacles', '--duration', '300',
-               '--period', '100', '--qos-reliability', 'reliable', '--qos-depth', str(FRAMES))
+    # hz runs until it is interrupted below, once its periodic lines show every frame counted:
+    # a fixed --duration would start counting before play has even started (a few seconds,
+    # more on a loaded machine) and could close before the last frame; and a frame acked by
+    # hz's reader may still wait in its queue. --duration is a safety net.
+    hz = start_module('gp_ground_segmentation.tools.cli', 'hz', f'{prefix}/ground',
+                      f'{prefix}/obstacles', '--duration', '300', '--period', '0.2',
+                      '--qos-reliability', 'reliable', '--qos-depth', str(FRAMES))
     request.addfinalizer(lambda: _stop(hz))
+    hz_lines = []  # stdout and stderr, read as they come
+
+    def read_hz():
+        for line in hz.stdout:
+            hz_lines.append(line)
+    hz_reader = threading.Thread(target=read_hz, daemon=True)
+    hz_reader.start()
     # hz subscribes once it has seen the topics: wait for it (2 peer subscriptions + hz)
     assert wait_for(lambda: h.node.count_subscribers(f'{prefix}/ground') >= 3
                     and h.node.count_subscribers(f'{prefix}/obstacles') >= 3, 60.0)
     play = _tool('play', str(pcd_dir), '--topic', f'{prefix}/points', '--frame-id', 'base_lidar',
                  '--rate', '2', '--restamp', '--clock', '--wait-for-subscriber', '10',
                  '--delay', '1', '--qos-reliability', 'reliable', '--qos-depth', str(FRAMES))
+    request.addfinalizer(lambda: _stop(play))
     out, err = play.communicate(timeout=60)
     assert play.returncode == 0, err
     assert f'published {FRAMES} frame(s)' in err and 'Traceback' not in err
@@ -96,14 +106,22 @@ def test_play_feeds_the_live_node_with_restamp_and_clock(pcd_dir, ros_harness, r
     stamps = [m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec for m in ground]
     assert stamps == pytest.approx([0.1 * i for i in range(FRAMES)], abs=1e-6)
     assert clocks and max(c.clock.sec + 1e-9 * c.clock.nanosec for c in clocks) >= 0.4 - 1e-6
-    from rclpy.duration import Duration
-    for publisher in (h.node._pub_ground, h.node._pub_obstacles):  # noqa: SLF001
-        assert publisher.wait_for_all_acked(Duration(seconds=30)), 'hz did not ack every frame'
+
+    def hz_counted_all():
+        last = {}
+        for line in list(hz_lines):
+            last[line.split(':')[0]] = line
+        return all(f' {FRAMES} message(s)' in last.get(f'{prefix}/{t}', '')
+                   for t in ('ground', 'obstacles'))
+    assert wait_for(hz_counted_all, 60.0), ''.join(hz_lines[-6:])
     hz.send_signal(signal.SIGINT)  # Ctrl-C: hz prints its summary and exits 0
-    hz_out, hz_err = hz.communicate(timeout=60)
-    assert hz.returncode == 0, hz_err
-    summary = [ln for ln in hz_out.splitlines() if ln.startswith(f'{prefix}/ground:')][-1]
-    assert f'{FRAMES} message(s)' in summary and "frame_id 'base_lidar'" in summary
+    assert hz.wait(timeout=60) == 0, ''.join(hz_lines)
+    hz_reader.join(timeout=10)
+    text = ''.join(hz_lines)
+    assert 'gp-ground-seg hz: summary' in text and 'Traceback' not in text, text
+    summary = text.split('gp-ground-seg hz: summary')[-1].splitlines()
+    [ground_line] = [ln for ln in summary if ln.startswith(f'{prefix}/ground:')]
+    assert f'{FRAMES} message(s)' in ground_line and "frame_id 'base_lidar'" in ground_line
 
 
 def test_play_keeps_the_recorded_pace(pcd_dir):
@@ -121,8 +139,10 @@ def test_play_loop_stops_cleanly_on_sigint(pcd_dir):
                  '--wait-for-subscriber', '0')
     watchdog = threading.Timer(120.0, play.kill)  # a stalled start fails, not hangs, the run
     watchdog.start()
+    started = []  # stderr lines read before the loop runs, for the failure message
     try:
         for line in play.stderr:  # started: the graph is up and frames are going out
+            started.append(line)
             if 'publishing' in line:
                 break
         watchdog.cancel()
@@ -134,8 +154,9 @@ def test_play_loop_stops_cleanly_on_sigint(pcd_dir):
         watchdog.cancel()
         if play.poll() is None:
             play.kill()
+    err = ''.join(started) + err
     assert play.returncode == 0 and 'Traceback' not in err, err
-    assert 'full pass(es)' in err
+    assert 'full pass(es)' in err, err
 
 
 def test_play_bad_input_is_one_line(tmp_path, capsys):

@@ -337,12 +337,15 @@ def _yaml_error_text(exc) -> str:
     return '; '.join(parts) or str(exc).splitlines()[0]
 
 
-def params_file_values(path, node_name: str = NODE_NAME, namespace: str = '/') -> dict:
+def params_file_values(path, node_name: str = NODE_NAME, namespace: str = '/',
+                       doc: dict | None = None) -> dict:
     """The flattened ``ros__parameters`` of a parameter file's sections for this node, merged
     in file order (load_params_file); ParameterConfigError when unreadable, not YAML or without
-    a section for the node."""
+    a section for the node. ``doc``: the file's document when the caller has read it already
+    (:func:`read_params_file`), so that it is not parsed again."""
     path = Path(path)
-    doc = read_params_file(path)
+    if doc is None:
+        doc = read_params_file(path)
     values: dict = {}
     matched = False
     try:

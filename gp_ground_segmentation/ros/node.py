@@ -529,13 +529,13 @@ def _split_command_line(args: list) -> tuple[list, list]:
     return plain, files
 
 
-def _check_params_file_sections(path: str, node) -> None:
+def _check_params_file_sections(path: str, doc: dict, node) -> None:
     """A params file with no section for this node would be ignored silently by rcl (e.g. a
     'ground_segmentation:' key when the node runs in a namespace): refuse to start instead.
     QoS overrides of topics this node does not have (rclpy ignores them silently; usually the
     name before remapping, '/points' for a node remapped to '/velodyne_points') get a warning:
     not an error, as a '/**' section may hold other nodes' overrides."""
-    values = params_file_values(path, node.get_name(), node.get_namespace())  # read once
+    values = params_file_values(path, node.get_name(), node.get_namespace(), doc)
     params_from_values(path, values)
     unused = qos_override_topics(values) - set(node.topic_names)
     if unused:
@@ -566,15 +566,16 @@ def main(args=None):
     node = None
     exit_code = 0
     try:
-        for path in params_files:  # rcl: a traceback when unreadable, two lines when not YAML
-            read_params_file(path)
+        # read before rcl, which reports an unreadable file in a traceback and one that is not
+        # YAML in two lines naming its C sources; the documents serve the checks below
+        documents = [(path, read_params_file(path)) for path in params_files]
         rclpy.init(args=argv)
         # The executor exists before the node announces itself, so a Ctrl-C right after the
         # 'listening' line never lands inside executor construction (an rclpy 7.1 __del__ race).
         executor = SingleThreadedExecutor()
         node = GroundSegmentationNode(announce=False)
-        for path in params_files:
-            _check_params_file_sections(path, node)
+        for path, doc in documents:
+            _check_params_file_sections(path, doc, node)
         node.announce()  # after the checks: a refused file gives FATAL, not 'listening' first
         executor.add_node(node)
         executor.spin()

@@ -112,22 +112,27 @@ def no_ground_note(name: str, ground_points: int, ground: tuple):
 # eval
 # ---------------------------------------------------------------------------------------------
 
+def _one_point_file(path: Path) -> bool:
+    """An ``eval`` input that is one point file: one frame."""
+    from .bag import is_point_file
+    return path.is_file() and is_point_file(path)
+
+
 def _point_file_count(inputs):
     """How many frames ``inputs`` hold when every one is a point file (one frame each), else
     None (bags and directories are counted as they are read)."""
-    from .bag import is_point_file
     paths = [Path(spec) for spec in inputs]
-    if all(path.is_file() and is_point_file(path) for path in paths):
+    if all(_one_point_file(path) for path in paths):
         return len(paths)
     return None
 
 
 def _eval_frames(inputs, topic):
     """Yield (name, rclpy PointCloud2) for every input: point files, BAG:INDEX or whole bags."""
-    from .bag import FrameSource, is_point_file, read_frame
+    from .bag import FrameSource, read_frame
     for spec in inputs:
         path = Path(spec)
-        if path.exists() and not (path.is_file() and is_point_file(path)):
+        if path.exists() and not _one_point_file(path):
             with FrameSource([path], topic) as source:
                 for frame in source:
                     # a directory of point files: each frame by its file (the --labels order)

@@ -77,20 +77,26 @@ def start_module(module: str, *args, env_extra=None, stderr=subprocess.STDOUT, *
                             stderr=stderr, text=True, env=module_env(env_extra), **kwargs)
 
 
-def wait_listening(proc, timeout=300.0) -> list:
-    """Lines of a started node's output up to its 'listening on' line (it is up). A node not
-    up after ``timeout`` s is killed (its output then ends): a failure, not a hung test run."""
+def lines_until(proc, stream, marker: str, timeout: float) -> list:
+    """Lines of ``stream`` (one of ``proc``'s pipes) up to the first holding ``marker``. A
+    process that has not printed it after ``timeout`` s is killed (its output then ends): a
+    failure naming what it printed, not a hung test run."""
     lines = []
     watchdog = threading.Timer(timeout, proc.kill)
     watchdog.start()
     try:
-        for line in proc.stdout:
+        for line in stream:
             lines.append(line)
-            if 'listening on' in line:
+            if marker in line:
                 return lines
     finally:
         watchdog.cancel()
-    raise AssertionError(f'node did not start within {timeout:.0f} s: {"".join(lines)}')
+    raise AssertionError(f'no {marker!r} within {timeout:.0f} s: {"".join(lines)}')
+
+
+def wait_listening(proc, timeout=300.0) -> list:
+    """Lines of a started node's output up to its 'listening on' line (it is up)."""
+    return lines_until(proc, proc.stdout, 'listening on', timeout)
 
 
 @pytest.fixture(scope='session')
@@ -255,22 +261,27 @@ class RosHarness:
         return (w.frames_processed + w.frames_dropped + w.frames_failed >= w.frames_received
                 and not self.node._slot)  # noqa: SLF001 - read-only peek at the slot
 
-    def wait_drained(self, timeout=20.0, quiet_s=1.0) -> bool:
-        """Wait until the node is settled and has received nothing new for ``quiet_s``.
+    def steady_counts(self, timeout=20.0, quiet_s=1.0):
+        """The node's counts (a window snapshot) once two of them taken ``quiet_s`` apart are
+        equal, with processed + dropped + failed == received and nothing in the slot; None
+        after ``timeout``.
 
         After a burst, DDS may still hand the node a frame it queued earlier: one settled
-        snapshot then reads ``frames_received`` one ahead of the recorded fates (seen once in CI,
-        a 42nd frame arriving after the 41st was recorded). Quiet for a second means the burst
-        is over and the counts can be read as one consistent set."""
+        snapshot then read ``frames_received`` one ahead of the recorded fates (seen once in
+        CI, a 42nd frame arriving after the 41st was recorded). A frame lost or counted twice
+        never gives such counts; a late one only defers them."""
+        keys = ('frames_received', 'frames_processed', 'frames_dropped', 'frames_failed')
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
-            if not wait_for(self.node_settled, max(0.0, deadline - time.monotonic())):
-                return False
-            received = self.node.window.frames_received
+            first = self.node.window.snapshot()
             time.sleep(quiet_s)
-            if self.node_settled() and self.node.window.frames_received == received:
-                return True
-        return False
+            counts = self.node.window.snapshot()
+            fates = counts['frames_processed'] + counts['frames_dropped'] \
+                + counts['frames_failed']
+            if (all(first[k] == counts[k] for k in keys) and fates == counts['frames_received']
+                    and not self.node._slot):  # noqa: SLF001 - read-only peek at the slot
+                return counts
+        return None
 
     def statuses(self):
         with self.lock:

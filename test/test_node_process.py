@@ -77,15 +77,21 @@ def test_ros_arguments_without_ros_args_are_refused():
     assert 'listening on' not in out
 
 
+def _fatal_line(params_file):
+    """The node started with ``params_file`` exits 1 having printed one FATAL line naming it:
+    that line, and the whole output."""
+    code, out = _run(['--ros-args', '--params-file', str(params_file)])
+    assert code == 1, out
+    lines = out.strip().splitlines()
+    assert len(lines) == 1 and 'FATAL' in lines[0] and str(params_file) in lines[0], out
+    return lines[0], out
+
+
 @pytest.mark.parametrize('make_path', [lambda tmp: tmp / 'missing.yaml', lambda tmp: tmp],
                          ids=['missing', 'directory'])
 def test_unreadable_params_file_is_one_fatal_line(tmp_path, make_path):
-    path = make_path(tmp_path)
-    code, out = _run(['--ros-args', '--params-file', str(path)])
-    assert code == 1, out
+    _, out = _fatal_line(make_path(tmp_path))
     assert 'Traceback' not in out and 'RCLError' not in out, out
-    lines = out.strip().splitlines()
-    assert len(lines) == 1 and 'FATAL' in lines[0] and str(path) in lines[0], out
 
 
 @pytest.mark.parametrize('text, where', [
@@ -108,11 +114,8 @@ def test_params_file_that_is_not_yaml_is_one_fatal_line(tmp_path, text, where):
     # is not UTF-8 made the node's own check raise a traceback)
     path = tmp_path / 'broken.yaml'
     path.write_bytes(text)
-    code, out = _run(['--ros-args', '--params-file', str(path)])
-    assert code == 1, out
-    lines = out.strip().splitlines()
-    assert len(lines) == 1 and 'FATAL' in lines[0] and str(path) in lines[0], out
-    assert where in lines[0] and 'parse.c' not in out and 'listening on' not in out, out
+    line, out = _fatal_line(path)
+    assert where in line and 'parse.c' not in out and 'listening on' not in out, out
 
 
 def _shipped_params_with(tmp_path, **changes):

@@ -29,7 +29,7 @@ import threading
 import time
 
 import pytest
-from conftest import status_values, wait_for
+from conftest import status_values
 
 from gp_ground_segmentation import GroundSegmenter
 from gp_ground_segmentation.core import compiled
@@ -122,28 +122,15 @@ def test_overload_bounded_slot_counted_drops_flat_rss(kitti_msgs, ros_harness, q
                 next_rss += 1.0
             next_t += period
             time.sleep(max(0.0, next_t - time.monotonic()))
-        w = node.window
-        assert h.wait_drained(20.0), 'the node did not settle after the burst'
+        # every received frame has exactly one fate: counts that stay put for a second with
+        # processed + dropped + failed == received (RosHarness.steady_counts)
+        counts = h.steady_counts(20.0)
+        assert counts is not None, f'fates never matched arrivals: {node.window.snapshot()}'
         rss.append((time.monotonic() - t0, _rss_mb()))
     finally:
         stop.set()
         watcher.join(2.0)
 
-    # Every received frame has exactly one fate: two copies of the counts (each taken under
-    # the window's lock) 0.5 s apart, equal, with processed + dropped + failed == received. A
-    # frame lost or counted twice never gives them; a frame DDS delivers late (the drain above
-    # makes that rare) only defers them. The counts asserted on below are that one set.
-    keys = ('frames_received', 'frames_processed', 'frames_dropped', 'frames_failed')
-
-    def fates_match_arrivals():
-        first = w.snapshot()
-        time.sleep(0.5)
-        c = w.snapshot()
-        total = c['frames_processed'] + c['frames_dropped'] + c['frames_failed']
-        steady = all(first[k] == c[k] for k in keys)
-        return c if steady and total == c['frames_received'] else None
-    counts = wait_for(fates_match_arrivals, 20.0)
-    assert counts is not None, f'fates never matched arrivals: {w.snapshot()}'
     received, processed = counts['frames_received'], counts['frames_processed']
     dropped, failed = counts['frames_dropped'], counts['frames_failed']
     # best-effort DDS may lose part of a 50 Hz burst of 2 MB clouds before the callback (not

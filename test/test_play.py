@@ -11,7 +11,7 @@ import uuid
 import numpy as np
 import pytest
 
-from conftest import start_module, wait_for
+from conftest import lines_until, start_module, wait_for
 from gp_ground_segmentation.tools.cli import main
 
 FRAMES = 5
@@ -137,21 +137,14 @@ def test_play_keeps_the_recorded_pace(pcd_dir):
 def test_play_loop_stops_cleanly_on_sigint(pcd_dir):
     play = _tool('play', str(pcd_dir), '--topic', '/gp_test_loop', '--loop',
                  '--wait-for-subscriber', '0')
-    watchdog = threading.Timer(120.0, play.kill)  # a stalled start fails, not hangs, the run
-    watchdog.start()
-    started = []  # stderr lines read before the loop runs, for the failure message
     try:
-        for line in play.stderr:  # started: the graph is up and frames are going out
-            started.append(line)
-            if 'publishing' in line:
-                break
-        watchdog.cancel()
+        # started: the graph is up and frames are going out (the lines kept for the message)
+        started = lines_until(play, play.stderr, 'publishing', 120.0)
         time.sleep(1.0)
         play.send_signal(signal.SIGINT)
         play.send_signal(signal.SIGINT)
         _, err = play.communicate(timeout=30)
     finally:
-        watchdog.cancel()
         if play.poll() is None:
             play.kill()
     err = ''.join(started) + err

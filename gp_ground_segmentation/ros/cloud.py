@@ -40,7 +40,7 @@ from ..core import compiled
 
 __all__ = ['CloudFormatError', 'POINTFIELD_DTYPES', 'fields_dtype', 'read_cloud', 'cloud_xyz',
            'xyz_dtype', 'point_rows', 'subset_cloud', 'split_cloud', 'make_cloud', 'set_data',
-           'float32_cloud', 'with_float32_field']
+           'float32_cloud', 'with_float32_field', 'cloud_with_fields']
 
 
 class CloudFormatError(ValueError):
@@ -58,6 +58,7 @@ POINTFIELD_DTYPES = {
     7: np.dtype(np.float32),  # FLOAT32
     8: np.dtype(np.float64),  # FLOAT64
 }
+UINT8 = 2  # sensor_msgs/PointField.UINT8
 FLOAT32 = 7  # sensor_msgs/PointField.FLOAT32
 _DATATYPE_NAMES = {1: 'INT8', 2: 'UINT8', 3: 'INT16', 4: 'UINT16', 5: 'INT32', 6: 'UINT32',
                    7: 'FLOAT32', 8: 'FLOAT64'}
@@ -654,5 +655,29 @@ def with_float32_field(msg, name, values):
     out.point_step = step + 4
     out.row_step = n * (step + 4)
     set_data(out, packed.view(np.uint8))
+    out.is_dense = bool(msg.is_dense)
+    return out
+
+
+def cloud_with_fields(msg, rows, new_fields):
+    """A new unorganized message of ``type(msg)`` holding ``rows``: ``msg``'s header, fields,
+    byte order and is_dense plus ``new_fields``, each ``(name, offset, datatype)`` (count 1).
+
+    ``rows``: a C-contiguous structured (K,) array whose itemsize is the new point_step (the
+    labelled rows of ``labels.labeled_points``: ``msg``'s point bytes, then the new fields).
+    """
+    rows = np.ascontiguousarray(rows)
+    field_cls = _field_class(type(msg))
+    out = type(msg)()
+    out.header = _copy_header(msg.header)
+    out.height = 1
+    out.width = int(rows.shape[0])
+    out.fields = _copy_fields(msg.fields) + [
+        field_cls(name=name, offset=int(offset), datatype=int(datatype), count=1)
+        for name, offset, datatype in new_fields]
+    out.is_bigendian = bool(msg.is_bigendian)
+    out.point_step = int(rows.dtype.itemsize)
+    out.row_step = out.point_step * out.width
+    set_data(out, rows.view(np.uint8) if rows.size else np.zeros(0, np.uint8))
     out.is_dense = bool(msg.is_dense)
     return out

@@ -22,7 +22,10 @@ using the result.
 Optional outputs (node parameters of the same names): ``publish_ground_surface`` adds the GP
 ground surface (``surface_cloud``: x, y, z, z_std FLOAT32 at the supported prediction points,
 input header); ``add_height_above_ground_field`` appends a FLOAT32 ``height_above_ground``
-field (z - z_hat, m) to the ground and obstacle clouds after every original byte.
+field (z - z_hat, m) to the ground and obstacle clouds after every original byte. The labelled
+cloud (``labeled_cloud``: every valid point's bytes plus ``ground`` and
+``height_above_ground``, in input order; ``labels.py``) has no parameter: ``labeled=True``
+or :func:`add_labeled` builds it (the node does while its ``labeled`` topic has a subscriber).
 """
 
 from __future__ import annotations
@@ -33,18 +36,18 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .cloud import (FLOAT32, cloud_xyz, float32_cloud, read_cloud, split_cloud,
-                    with_float32_field)
+from .cloud import (FLOAT32, UINT8, cloud_with_fields, cloud_xyz, float32_cloud, read_cloud,
+                    split_cloud, with_float32_field)
 from ..core.segmenter import SegmentationResult
 from ..core.sensor_frame import cloud_notes
+from ..labels import GROUND_FIELD, HEIGHT_FIELD, labeled_points
 
-__all__ = ['FrameOutput', 'process_cloud', 'add_surface', 'input_warnings', 'STAGES',
-           'frame_timings', 'surface_cloud', 'warm_up', 'HEIGHT_FIELD', 'OUTPUT_SWITCHES',
-           'SURFACE_FIELDS']
+__all__ = ['FrameOutput', 'process_cloud', 'add_surface', 'add_labeled', 'input_warnings',
+           'STAGES', 'frame_timings', 'surface_cloud', 'labeled_cloud', 'warm_up',
+           'GROUND_FIELD', 'HEIGHT_FIELD', 'OUTPUT_SWITCHES', 'SURFACE_FIELDS']
 
 # Node parameters (config.NODE_PARAMS) that switch the optional outputs: process_cloud keywords
 OUTPUT_SWITCHES = ('publish_ground_surface', 'add_height_above_ground_field')
-HEIGHT_FIELD = 'height_above_ground'  # name of the optional per-point field (m)
 SURFACE_FIELDS = ('x', 'y', 'z', 'z_std')  # fields of the ground surface cloud (m)
 
 # Stages reported in diagnostics, in pipeline order (segmenter stages from result.timings_ms).
@@ -72,6 +75,8 @@ class FrameOutput:
     # Part of encode_ms spent on the surface cloud (its deferred ground offset and z_std
     # included); NaN when no surface was built.
     surface_ms: float = float('nan')
+    labeled: object = None  # PointCloud2 of the labelled valid points, when asked for
+    labeled_ms: float = float('nan')  # part of encode_ms spent on it; NaN when not built
 
     @property
     def num_points(self) -> int:
@@ -84,8 +89,9 @@ def frame_timings(out: FrameOutput) -> dict:
     A core stage that the segmenter did not report is left out (not faked as 0).
     """
     timings = {'decode': out.decode_ms, 'encode': out.encode_ms, 'total': out.total_ms}
-    if np.isfinite(out.surface_ms):
-        timings['surface'] = out.surface_ms
+    for stage, ms in (('surface', out.surface_ms), ('labeled', out.labeled_ms)):
+        if np.isfinite(ms):
+            timings[stage] = ms
     for stage in STAGES:
         if stage not in timings and stage in out.result.timings_ms:
             timings[stage] = float(out.result.timings_ms[stage])
@@ -101,10 +107,24 @@ def surface_cloud(header, surface, msg_type=None):
     return float32_cloud(header, values, SURFACE_FIELDS, msg_type)
 
 
+def labeled_cloud(msg, result):
+    """PointCloud2 of ``type(msg)``: one row per valid point of ``msg`` in input order, its bytes
+    unchanged, then ``ground`` (UINT8, 1 = ground) and ``height_above_ground`` (FLOAT32, m) in
+    the cloud's byte order (``labels.labeled_points``); ``msg``'s header. ``result``: the
+    SegmentationResult of ``msg``'s points. is_dense is true: invalid points are left out."""
+    rows = labeled_points(read_cloud(msg), result, '>' if msg.is_bigendian else '<')
+    fields = rows.dtype.fields
+    out = cloud_with_fields(msg, rows, [(GROUND_FIELD, fields[GROUND_FIELD][1], UINT8),
+                                        (HEIGHT_FIELD, fields[HEIGHT_FIELD][1], FLOAT32)])
+    out.is_dense = True
+    return out
+
+
 def process_cloud(msg, segmenter, *, publish_ground_surface: bool = False,
-                  add_height_above_ground_field: bool = False) -> FrameOutput:
+                  add_height_above_ground_field: bool = False,
+                  labeled: bool = False) -> FrameOutput:
     """Split ``msg`` (sensor_msgs/PointCloud2) into ground and obstacle clouds with ``segmenter``;
-    the two keywords add the optional outputs of the module docstring.
+    the keywords add the optional outputs of the module docstring.
 
     Raises ``cloud.CloudFormatError`` (a ValueError, one-line message) for an unusable layout
     (missing x/y/z, data too short, ...), and RuntimeError if the split is inconsistent.
@@ -141,6 +161,8 @@ def process_cloud(msg, segmenter, *, publish_ground_surface: bool = False,
                       total_ms=(time.perf_counter() - t0) * 1e3, warnings=warnings)
     if publish_ground_surface:
         add_surface(out, msg)
+    if labeled:
+        add_labeled(out, msg)
     return out
 
 
@@ -165,14 +187,30 @@ def add_surface(out: FrameOutput, msg) -> FrameOutput:
     publishes ground and obstacles first and builds the surface cloud after, so that their
     subscribers do not wait for it. No-op when the surface is there already or the segmenter
     gave none."""
-    if out.surface is not None or out.result.ground_surface is None:
-        return out
-    t0 = time.perf_counter()
-    out.surface = surface_cloud(msg.header, out.result.ground_surface, type(msg))
-    out.surface_ms = (time.perf_counter() - t0) * 1e3
-    out.encode_ms += out.surface_ms
-    out.total_ms += out.surface_ms
+    if out.surface is None and out.result.ground_surface is not None:
+        _add_output(out, 'surface', lambda: surface_cloud(msg.header, out.result.ground_surface,
+                                                          type(msg)))
     return out
+
+
+def add_labeled(out: FrameOutput, msg) -> FrameOutput:
+    """Build the labelled cloud (:func:`labeled_cloud`) of a frame that ``process_cloud`` split
+    without it, as :func:`add_surface` builds the surface: ``out.labeled`` and
+    ``out.labeled_ms`` set, ``encode_ms`` and ``total_ms`` grown by it. No-op when it is there
+    already."""
+    if out.labeled is None:
+        _add_output(out, 'labeled', lambda: labeled_cloud(msg, out.result))
+    return out
+
+
+def _add_output(out: FrameOutput, name: str, build) -> None:
+    """``out.<name> = build()``, its time in ``out.<name>_ms`` and added to encode and total."""
+    t0 = time.perf_counter()
+    setattr(out, name, build())
+    ms = (time.perf_counter() - t0) * 1e3
+    setattr(out, f'{name}_ms', ms)
+    out.encode_ms += ms
+    out.total_ms += ms
 
 
 def input_warnings(msg, result, xyz=None, params=None) -> list:

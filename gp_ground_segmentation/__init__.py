@@ -1,8 +1,9 @@
 """Gaussian-process ground segmentation for sloped terrain (Mehrabi & Taghirad, ICRoM 2021).
 
-Layout: ``core`` (numpy/scipy/numba only, no ROS), ``ros`` (PointCloud2 conversion, the node,
-diagnostics, parameter loading; needs rclpy), ``tools`` (bag replay, evaluation, plots, CLI).
-The public API below is the core's.
+Layout: ``core`` (numpy/scipy/numba only, no ROS), ``labels`` (the labelled rows of a frame:
+every valid point plus ground and height_above_ground; numpy only), ``ros`` (PointCloud2
+conversion, the node, diagnostics, parameter loading; needs rclpy), ``tools`` (bag replay,
+evaluation, plots, CLI). The public API below is the core's.
 """
 
 from .core.params import SegmenterParams, describe_params

@@ -149,6 +149,16 @@ def assert_output_like_input(inp, out):
     assert out.row_step == out.width * out.point_step == len(out.data)
 
 
+def quaternion_of(matrix):
+    """(x, y, z, w) of a rotation matrix whose trace is > -1 (rotations below 180 degrees)."""
+    import math
+
+    import numpy as np
+    w = math.sqrt(1.0 + np.trace(matrix)) / 2.0
+    return ((matrix[2, 1] - matrix[1, 2]) / (4 * w), (matrix[0, 2] - matrix[2, 0]) / (4 * w),
+            (matrix[1, 0] - matrix[0, 1]) / (4 * w), w)
+
+
 def wait_for(predicate, timeout=20.0, period=0.01):
     """Poll ``predicate`` until true or ``timeout`` (s); return its last value."""
     deadline = time.monotonic() + timeout
@@ -162,14 +172,16 @@ def wait_for(predicate, timeout=20.0, period=0.01):
 class RosHarness:
     """A GroundSegmentationNode plus a peer node (publisher of 'points', subscriber of the
     outputs and /diagnostics), spun by a MultiThreadedExecutor in a background thread, all in a
-    private rclpy Context."""
+    private rclpy Context. ``labeled``: the peer also subscribes to 'labeled' (the node builds
+    that cloud only while someone does); ``imu_topic``: the peer gets a sensor_msgs/Imu
+    publisher there (``imu_pub``), matched to the node's subscription when the node has one."""
 
-    def __init__(self, node_kwargs=None, context_args=None):
+    def __init__(self, node_kwargs=None, context_args=None, labeled=False, imu_topic=None):
         import rclpy
         from diagnostic_msgs.msg import DiagnosticArray
         from rclpy.executors import MultiThreadedExecutor
         from rclpy.qos import QoSProfile, ReliabilityPolicy
-        from sensor_msgs.msg import PointCloud2
+        from sensor_msgs.msg import Imu, PointCloud2
 
         from gp_ground_segmentation.ros.node import OUTPUT_QOS, GroundSegmentationNode
 
@@ -185,7 +197,7 @@ class RosHarness:
             self.peer = rclpy.create_node('gp_test_peer', context=self.context)
             self.lock = threading.Lock()
             self.ground, self.obstacles, self.diagnostics = [], [], []
-            self.surface = []
+            self.surface, self.labeled = [], []
             # The node's reliable output matched with a deep reader: a loaded machine that
             # runs the peer's callbacks late must not lose an output in the peer's own history.
             deep_reader = QoSProfile(depth=100, reliability=OUTPUT_QOS.reliability,
@@ -198,6 +210,11 @@ class RosHarness:
                                           self._collect(self.surface), deep_reader)
             self.peer.create_subscription(DiagnosticArray, '/diagnostics',
                                           self._collect(self.diagnostics), 10)
+            if labeled:
+                self.peer.create_subscription(PointCloud2, 'labeled',
+                                              self._collect(self.labeled), deep_reader)
+            self.imu_pub = None if imu_topic is None else self.peer.create_publisher(
+                Imu, imu_topic, QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
             # A RELIABLE writer matches the best-effort subscription (effective: best effort).
             self.pub = self.peer.create_publisher(
                 PointCloud2, 'points', QoSProfile(depth=10,
@@ -210,10 +227,13 @@ class RosHarness:
             assert wait_for(lambda: self.pub.get_subscription_count() > 0, 10.0), \
                 'node subscription not discovered'
             # resolved names: context_args may remap or namespace the outputs
-            outputs = [p.topic_name for p in self.node.publishers
-                       if p.topic_name.endswith(('/ground', '/obstacles'))]
+            ends = ('/ground', '/obstacles') + (('/labeled',) if labeled else ())
+            outputs = [p.topic_name for p in self.node.publishers if p.topic_name.endswith(ends)]
             assert wait_for(lambda: all(self.node.count_subscribers(t) > 0 for t in outputs),
                             10.0)
+            if self.imu_pub is not None and self.node.get_parameter('imu_topic').value:
+                assert wait_for(lambda: self.imu_pub.get_subscription_count() > 0, 10.0), \
+                    'node IMU subscription not discovered'
             # the worker's warm-up done (seconds with an empty numba cache), so that a test
             # that patches the GP or numpy next patches the frames', not the warm-up's calls
             assert self.node.warmed_up.wait(300.0), 'node warm-up did not finish'
@@ -236,8 +256,15 @@ class RosHarness:
 
     def surface_for(self, stamp):
         """The ground_surface message whose header stamp equals ``stamp``, or None."""
+        return self._last_with_stamp(self.surface, stamp)
+
+    def labeled_for(self, stamp):
+        """The labeled message whose header stamp equals ``stamp``, or None."""
+        return self._last_with_stamp(self.labeled, stamp)
+
+    def _last_with_stamp(self, bucket, stamp):
         with self.lock:
-            found = [m for m in self.surface if m.header.stamp == stamp]
+            found = [m for m in bucket if m.header.stamp == stamp]
         return found[-1] if found else None
 
     def publish_and_wait(self, msg, timeout=30.0):

@@ -53,7 +53,9 @@ def test_load_shipped_file_gives_defaults():
     assert node == node_param_defaults()
     assert node == {'processing_budget_ms': 100.0, 'queue_size': 1, 'diagnostics_period_s': 1.0,
                     'diagnostics_window': 50, 'publish_ground_surface': True,
-                    'add_height_above_ground_field': False}
+                    'imu_topic': '', 'imu_max_age_s': 0.1, 'imu_lidar_roll_rad': 0.0,
+                    'imu_lidar_pitch_rad': 0.0, 'imu_lidar_yaw_rad': 0.0,
+                    'imu_accel_time_constant_s': 0.5, 'add_height_above_ground_field': False}
 
 
 @pytest.mark.parametrize('key', ['ground_segmentation', '/ground_segmentation', '/**',
@@ -169,9 +171,22 @@ def test_specs_cover_both_sets_once():
     names = [r['name'] for r in describe_params()] + list(NODE_PARAMS)
     assert list(specs) == names and len(set(names)) == len(names)
     for spec in specs.values():
-        assert spec['type'] in ('int', 'float', 'bool') and spec['description']
-        if spec['type'] != 'bool':
+        assert spec['type'] in ('int', 'float', 'bool', 'str') and spec['description']
+        if spec['type'] in ('int', 'float'):
             assert spec['min'] <= spec['default'] <= spec['max'], spec['name']
+    # the only string, the IMU topic: off by default, fixed at start-up (it is subscribed to)
+    assert [n for n, s in specs.items() if s['type'] == 'str'] == ['imu_topic']
+    assert specs['imu_topic']['default'] == '' and specs['imu_topic']['read_only']
+
+
+def test_string_parameter_is_checked_and_written_as_a_string(tmp_path):
+    path = tmp_path / 'p.yaml'
+    path.write_text("/**:\n  ros__parameters:\n    imu_topic: /imu/data\n")
+    assert load_params_file(path)[1]['imu_topic'] == '/imu/data'
+    path.write_text('/**:\n  ros__parameters:\n    imu_topic: 3\n')
+    with pytest.raises(ParameterConfigError, match="'imu_topic': expected a string, got int 3"):
+        load_params_file(path)
+    assert "    imu_topic: ''" in render_params_yaml().splitlines()
 
 
 def test_params_table_has_a_row_per_param():

@@ -1,5 +1,5 @@
 # SPDX-License-Identifier: Apache-2.0
-"""The labelled rows (labels.py) and the labelled cloud (pipeline.labeled_cloud), without rclpy.init.
+"""The labelled rows (labels.py) and the labelled cloud (pipeline.labeled_cloud), no rclpy.init.
 
 Hand-built points with padding, mixed field types, invalid rows and both byte orders: the rows
 are the valid points in input order, every input byte unchanged, ``ground`` and

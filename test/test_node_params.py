@@ -91,6 +91,8 @@ def bad_values(name, spec):
             p += [('below min', low - 1)]
         if high is not None:
             p += [('above max', high + 1)]
+    elif kind == 'str':
+        p += [('integer', 1), ('bool', True), ('double', 1.0)]
     else:  # bool
         p += [('string', 'true'), ('integer', 1), ('double', 1.0)]
     p += [('integer array', [1, 2])]

@@ -222,3 +222,99 @@ def test_launch_description():
     assert {'points', 'params_file', 'namespace', 'use_sim_time', 'rviz'} <= names
     nodes = [e for e in description.entities if isinstance(e, Node)]
     assert len(nodes) == 2  # the segmentation node and the conditional RViz
+
+
+# --- the first ten minutes: command-line mistakes, one line each, and where the files are ---
+
+@pytest.mark.parametrize('args, words', [
+    (['--ros-args', '--bogus'], ['unknown ROS argument --bogus after --ros-args', '-r FROM:=TO']),
+    (['--ros-args', '-r', 'foo'], ["invalid remap rule: Couldn't parse remap rule: '-r foo'",
+                                   'write -r FROM:=TO']),
+    (['--ros-args', '--log-level', 'nonsense'],
+     ["invalid log level: Couldn't parse log level: '--log-level nonsense'", 'debug, info']),
+    (['--ros-args', '-p', 'x'], ['invalid parameter override', "'-p x'", 'write -p NAME:=VALUE'])],
+    ids=['unknown', 'remap', 'log-level', 'override'])
+def test_bad_ros_arguments_are_one_line_saying_what_they_are(args, words):
+    code, out = _run(args)
+    assert code == 2, out
+    lines = out.strip().splitlines()
+    assert len(lines) == 1 and 'FATAL' in lines[0], out  # no traceback, no rcl ERROR line
+    for word in words:
+        assert word in lines[0], out
+    assert 'invalid parameters' not in out and '.c:' not in out  # no rcl C source locations
+
+
+def test_unknown_plain_argument_prints_usage_and_error_only():
+    code, out = _run(['--bogus'])
+    assert code == 2
+    assert out.strip().splitlines() == [
+        'usage: ground_segmentation_node [--help] [--ros-args ...]',
+        'ground_segmentation_node: error: unrecognized arguments: --bogus (ROS arguments such '
+        'as --params-file, -p and -r go after --ros-args)']
+
+
+def _help_files(out):
+    """The parameter file and Fast DDS profile paths --help names."""
+    lines = [ln.strip() for ln in out.splitlines()]
+    params = lines[lines.index('parameter file with every parameter and its default:') + 1]
+    fastdds = next(ln for ln in lines if ln.startswith('export FASTRTPS_DEFAULT_PROFILES_FILE='))
+    return params, fastdds.split('=', 1)[1]
+
+
+def test_help_names_the_source_trees_files_for_an_editable_install():
+    code, out = _run(['--help'])
+    assert code == 0
+    params, fastdds = _help_files(out)
+    assert params == str(REPO / 'config' / 'params.yaml') and os.path.isfile(params)
+    assert fastdds == str(REPO / 'config' / 'fastdds_large_shm.xml') and os.path.isfile(fastdds)
+    assert 'share/gp_ground_segmentation/config/' not in out  # not a path that may not exist
+
+
+def _installed_layout(prefix):
+    """The files a pip (or colcon) install writes under ``prefix``: the package in
+    lib/pythonX.Y/site-packages, setup.py's data files under share/ (config/*.yaml, *.xml)."""
+    import shutil
+    import sys
+    site = prefix / 'lib' / f'python{sys.version_info[0]}.{sys.version_info[1]}' / \
+        'site-packages'
+    shutil.copytree(REPO / 'gp_ground_segmentation', site / 'gp_ground_segmentation',
+                    ignore=shutil.ignore_patterns('__pycache__'))
+    config = prefix / 'share' / 'gp_ground_segmentation' / 'config'
+    config.mkdir(parents=True)
+    for pattern in ('*.yaml', '*.xml'):
+        for path in (REPO / 'config').glob(pattern):
+            shutil.copy(path, config)
+    return site, config
+
+
+def test_help_names_the_installed_files_of_a_pip_install(tmp_path):
+    import subprocess
+    import sys
+    site, config = _installed_layout(tmp_path / 'prefix')
+    env = dict(os.environ, PYTHONPATH=str(site))
+    out = subprocess.run([sys.executable, '-c', 'import sys; sys.argv[0] = "x"; '
+                          'import gp_ground_segmentation.ros.node as n; print(n.__file__); '
+                          'n.main(["ground_segmentation_node", "--help"])'],
+                         cwd=tmp_path, env=env, capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.splitlines()[0].startswith(str(site))  # the installed copy ran
+    assert _help_files(out.stdout) == (str(config / 'params.yaml'),
+                                       str(config / 'fastdds_large_shm.xml'))
+
+
+def test_help_names_the_colcon_installs_share_directory(tmp_path):
+    # a sourced colcon workspace: the package is in the ament index (AMENT_PREFIX_PATH)
+    install = tmp_path / 'install'
+    marker = install / 'share' / 'ament_index' / 'resource_index' / 'packages'
+    marker.mkdir(parents=True)
+    (marker / 'gp_ground_segmentation').write_text('')
+    config = install / 'share' / 'gp_ground_segmentation' / 'config'
+    config.mkdir(parents=True)
+    for name in ('params.yaml', 'fastdds_large_shm.xml'):
+        (config / name).write_text((REPO / 'config' / name).read_text())
+    proc = _start(['--help'], env_extra={'AMENT_PREFIX_PATH': str(install)})
+    out, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 0, out
+    assert _help_files(out) == (str(config / 'params.yaml'),
+                                str(config / 'fastdds_large_shm.xml'))
+    assert 'colcon install' in out

@@ -148,5 +148,8 @@ def test_python_api_block_runs_as_written():
     assert result.ground_mask.any() and result.obstacle_mask.any()
     assert np.all(np.isfinite(scope['z_hat'])) and np.all(scope['z_std'] >= 0)
     assert surface.z.shape == surface.z_std.shape
+    rows = scope['rows']  # the labelled rows: the valid points, in order, with their labels
+    assert rows.shape == (int(result.valid_mask.sum()),)
+    assert np.array_equal(rows['ground'] == 1, result.ground_mask[result.valid_mask])
     # the sample is a sensor-centred cloud in metres: nothing to note
     assert scope['cloud_notes'](points, scope['seg'].params.sensor_pose) == []

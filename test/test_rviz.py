@@ -9,6 +9,7 @@ import ast
 import yaml
 from conftest import REPO
 
+from gp_ground_segmentation.labels import HEIGHT_FIELD
 from gp_ground_segmentation.ros.node import INPUT_TOPIC, OUTPUT_TOPICS
 
 RVIZ = REPO / 'config' / 'ground_segmentation.rviz'
@@ -31,6 +32,13 @@ def test_displays_subscribe_to_the_package_topics():
         assert d['Topic']['Reliability Policy'] == expected, d['Name']
     surface = next(d for d in clouds if d['Topic']['Value'] == '/ground_surface')
     assert surface['Color Transformer'] == 'Intensity' and surface['Channel Name'] == 'z_std'
+    # the labelled cloud coloured by its height above the GP ground, over fixed bounds (a
+    # frame's own extremes, autocomputed, would give each frame another scale)
+    labeled = next(d for d in clouds if d['Topic']['Value'] == '/labeled')
+    assert labeled['Color Transformer'] == 'Intensity'
+    assert labeled['Channel Name'] == HEIGHT_FIELD
+    assert labeled['Autocompute Intensity Bounds'] is False
+    assert labeled['Min Intensity'] == 0 and labeled['Max Intensity'] == 2
     assert manager['Global Options']['Fixed Frame'] == 'velodyne'
 
 

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import math
 import re
 import textwrap
 from pathlib import Path
@@ -58,6 +59,41 @@ NODE_PARAMS = {
                        'candidates; z_std is the std of the ground height itself (the GP '
                        'posterior std and the spread across the segment; without sensor '
                        'noise); the node builds it only while the topic has a subscriber'},
+    'imu_topic': {
+        'default': '', 'type': 'str', 'read_only': True,
+        'description': 'sensor_msgs/Imu topic that levels every cloud (subscribed with '
+                       'sensor-data QoS): the roll and pitch of the cloud frame come from the '
+                       'IMU sample nearest the cloud header stamp (its orientation, or its '
+                       'low-passed linear_acceleration when orientation_covariance[0] is -1) '
+                       'and replace sensor_roll_rad and sensor_pitch_rad for that frame; '
+                       'empty: no IMU'},
+    'imu_max_age_s': {
+        'default': 0.1, 'type': 'float', 'min': 0.0, 'max': 10.0, 'read_only': False,
+        'description': 'largest |cloud stamp - IMU stamp| (s, header stamps, never the wall '
+                       'clock) at which the nearest IMU sample is used; beyond it, or with no '
+                       'sample, the frame uses the static sensor_roll_rad/sensor_pitch_rad and '
+                       'diagnostics go WARN giving the age'},
+    'imu_lidar_roll_rad': {
+        'default': 0.0, 'type': 'float', 'min': -math.pi, 'max': math.pi, 'read_only': False,
+        'description': 'roll of the LiDAR (cloud) frame in the IMU frame (rad, about x; with '
+                       'imu_lidar_pitch_rad and imu_lidar_yaw_rad the rotation '
+                       'R_z(yaw) R_y(pitch) R_x(roll) of a TF from the IMU frame to the LiDAR '
+                       'frame, REP 103; all 0 when the IMU axes are the LiDAR axes)'},
+    'imu_lidar_pitch_rad': {
+        'default': 0.0, 'type': 'float', 'min': -math.pi / 2, 'max': math.pi / 2,
+        'read_only': False,
+        'description': 'pitch of the LiDAR frame in the IMU frame (rad, about y; see '
+                       'imu_lidar_roll_rad)'},
+    'imu_lidar_yaw_rad': {
+        'default': 0.0, 'type': 'float', 'min': -math.pi, 'max': math.pi, 'read_only': False,
+        'description': 'yaw of the LiDAR frame in the IMU frame (rad, about z; see '
+                       'imu_lidar_roll_rad)'},
+    'imu_accel_time_constant_s': {
+        'default': 0.5, 'type': 'float', 'min': 0.0, 'max': 60.0, 'read_only': False,
+        'description': 'time constant (s) of the first-order low-pass of the IMU '
+                       'linear_acceleration, used for gravity when the driver gives no '
+                       'orientation; longer keeps more of the vehicle motion out of the tilt '
+                       'but follows a tilt later; 0: the raw sample'},
     'add_height_above_ground_field': {
         'default': False, 'type': 'bool', 'read_only': False,
         'description': 'append a FLOAT32 height_above_ground field (z - predicted ground '
@@ -108,7 +144,11 @@ def check_param_value(name: str, value, specs: dict | None = None) -> None:
         raise ParameterConfigError(
             f"unknown parameter '{name}' ({hint}known: {', '.join(sorted(specs))})")
     spec = specs[name]
-    problem = value_problem(value, spec['type'], spec.get('min'), spec.get('max'))
+    if spec['type'] == 'str':  # the core's parameters are numbers and bools only
+        problem = None if isinstance(value, str) else \
+            f'expected a string, got {type(value).__name__} {value!r}'
+    else:
+        problem = value_problem(value, spec['type'], spec.get('min'), spec.get('max'))
     if problem:
         raise ParameterConfigError(f"parameter '{name}': {problem}")
 
@@ -368,6 +408,8 @@ def params_file_values(path, node_name: str = NODE_NAME, namespace: str = '/',
 
 def _yaml_scalar(value) -> str:
     """A YAML literal that ROS reads back with the same type (doubles always with a '.')."""
+    if isinstance(value, str):
+        return "'" + value.replace("'", "''") + "'"
     if isinstance(value, bool):
         return 'true' if value else 'false'
     if isinstance(value, int):

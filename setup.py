@@ -58,6 +58,7 @@ setup(
     entry_points={
         'console_scripts': [
             'ground_segmentation_node = gp_ground_segmentation.ros.node:main',
+            'ground_segmentation_lifecycle_node = gp_ground_segmentation.ros.lifecycle:main',
             'gp-ground-seg = gp_ground_segmentation.tools.cli:main',
         ],
     },

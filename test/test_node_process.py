@@ -218,10 +218,14 @@ def test_launch_description():
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     description = module.generate_launch_description()
+    from launch_ros.actions import LifecycleNode
     names = {e.name for e in description.entities if isinstance(e, DeclareLaunchArgument)}
-    assert {'points', 'params_file', 'namespace', 'use_sim_time', 'rviz'} <= names
+    assert {'points', 'params_file', 'namespace', 'use_sim_time', 'lifecycle', 'autostart',
+            'rviz'} <= names
     nodes = [e for e in description.entities if isinstance(e, Node)]
-    assert len(nodes) == 2  # the segmentation node and the conditional RViz
+    # the plain node, the managed one (each under a condition on 'lifecycle') and RViz
+    assert len(nodes) == 3
+    assert len([n for n in nodes if isinstance(n, LifecycleNode)]) == 1
 
 
 # --- the first ten minutes: command-line mistakes, one line each, and where the files are ---

@@ -17,7 +17,7 @@ def test_package_xml_format3_ament_python_with_dependencies():
     assert root.find('export/build_type').text == 'ament_python'
     exec_deps = {e.text for e in root.findall('exec_depend')}
     assert {'rclpy', 'rcl_interfaces', 'sensor_msgs', 'std_msgs', 'diagnostic_msgs',
-            'python3-numpy', 'python3-scipy'} <= exec_deps
+            'python3-numpy', 'python3-scipy', 'lifecycle_msgs', 'ament_index_python'} <= exec_deps
     assert 'python3-pytest' in {e.text for e in root.findall('test_depend')}
     assert root.findall('buildtool_depend') == []  # not used by Jazzy ament_python packages
 
@@ -47,6 +47,7 @@ def test_setup_py_entry_points_and_data_files():
     kw = _setup_kwargs()
     scripts = ast.literal_eval(kw['entry_points'])['console_scripts']
     assert f'ground_segmentation_node = {PKG}.ros.node:main' in scripts
+    assert f'ground_segmentation_lifecycle_node = {PKG}.ros.lifecycle:main' in scripts
     assert f'gp-ground-seg = {PKG}.tools.cli:main' in scripts
     src = ast.unparse(kw['data_files'])
     for needle in ("'share/ament_index/resource_index/packages'", "'resource/' + package_name",

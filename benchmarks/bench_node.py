@@ -25,6 +25,10 @@ Modes:
                 times, the overhead around ``segment()`` and the node total
                 (hand-off + decode + segment + encode + publish). The issue-14 load test is
                 ``--latency --latency-s 60 --subscribers 3``.
+``--labeled``   with ``--subscribers``: the subscriber processes also take ``labeled`` (the node
+                builds that cloud only while someone subscribes), and the table adds its
+                ``labeled`` stage (part of encode). Without it nobody subscribes to it: the
+                node's default cost.
 ``--node-process``  with ``--latency``: the node runs alone in a child process (spun by a
                 SingleThreadedExecutor, as ``ros2 run`` starts it) instead of sharing this
                 process - and its GIL - with the publisher, the ``ground`` subscription that
@@ -79,7 +83,7 @@ STAGES = ('decode', 'segment', 'encode', 'total')
 # checks), i.e. everything the node adds to segment() before publishing; node_total = handoff +
 # total + publish (subscription callback to published); ground_published: the node's own
 # measure from the callback to ground and obstacles published (before the surface cloud).
-LOAD_STAGES = ('handoff', 'decode', 'segment', 'encode', 'surface', 'publish', 'around',
+LOAD_STAGES = ('handoff', 'decode', 'segment', 'encode', 'surface', 'labeled', 'publish', 'around',
                'around_without_surface', 'total', 'node_total', 'ground_published')
 MB = 1024.0 * 1024.0
 
@@ -380,9 +384,14 @@ def stage_stats(timings: list, stages=STAGES) -> dict:
 
 
 SUBSCRIBER_TOPICS = ('ground', 'obstacles', 'ground_surface')
+LABELED_TOPIC = 'labeled'  # with --labeled
 
 
-def subscriber_main() -> int:
+def subscriber_topics(labeled: bool) -> tuple:
+    return SUBSCRIBER_TOPICS + ((LABELED_TOPIC,) if labeled else ())
+
+
+def subscriber_main(topics: tuple = SUBSCRIBER_TOPICS) -> int:
     """One extra subscriber process (``--as-subscriber``): counts the messages on the output
     topics until stdin closes, then prints the counts as one JSON line."""
     import rclpy
@@ -393,13 +402,13 @@ def subscriber_main() -> int:
 
     rclpy.init()
     node = rclpy.create_node(f'bench_subscriber_{os.getpid()}')
-    counts = dict.fromkeys(SUBSCRIBER_TOPICS, 0)
+    counts = dict.fromkeys(topics, 0)
 
     def counter(topic):
         def on_msg(_msg):
             counts[topic] += 1
         return on_msg
-    for topic in SUBSCRIBER_TOPICS:
+    for topic in topics:
         node.create_subscription(PointCloud2, topic, counter(topic), OUTPUT_QOS)
     executor = SingleThreadedExecutor()
     executor.add_node(node)
@@ -412,10 +421,11 @@ def subscriber_main() -> int:
     os._exit(0)
 
 
-def start_subscribers(bench: NodeBench, count: int) -> list:
+def start_subscribers(bench: NodeBench, count: int, topics: tuple = SUBSCRIBER_TOPICS) -> list:
     """``count`` subscriber processes on this process's ROS_DOMAIN_ID, each matched to all
-    three output topics before this returns."""
-    procs = [subprocess.Popen([sys.executable, __file__, '--as-subscriber'],
+    ``topics`` before this returns."""
+    labeled = ['--labeled'] if LABELED_TOPIC in topics else []
+    procs = [subprocess.Popen([sys.executable, __file__, '--as-subscriber'] + labeled,
                               stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
              for _ in range(count)]
     for proc in procs:
@@ -423,7 +433,7 @@ def start_subscribers(bench: NodeBench, count: int) -> list:
             raise RuntimeError('a subscriber process did not start')
     deadline = time.monotonic() + 20.0
     while time.monotonic() < deadline:
-        if all(bench.peer.count_subscribers(f'/{t}') >= count for t in SUBSCRIBER_TOPICS):
+        if all(bench.peer.count_subscribers(f'/{t}') >= count for t in topics):
             return procs
         time.sleep(0.05)
     raise RuntimeError('subscriber processes not discovered within 20 s')
@@ -471,11 +481,12 @@ def status_dict(status) -> dict:
 
 def run_latency(msgs: list, duration_s: float, rate_hz: float = 10.0, warmup_s: float = 3.0,
                 slot_period_s: float = 0.005, executor: str = 'single', subscribers: int = 0,
-                node_process: bool = False):
+                node_process: bool = False, labeled: bool = False):
     bench = NodeBench(queue_size=1, executor=executor, node_process=node_process)
     procs = []
+    topics = subscriber_topics(labeled)
     try:
-        procs = start_subscribers(bench, subscribers)
+        procs = start_subscribers(bench, subscribers, topics)
         load_at_start = os.getloadavg()
         sampler = Sampler(bench, slot_period_s)
         sampler.start()
@@ -514,6 +525,7 @@ def run_latency(msgs: list, duration_s: float, rate_hz: float = 10.0, warmup_s: 
             'status_message': status.message if status else 'no status',
             'diag': status_dict(status), 'points': msgs[0].width,
             'subscribers': subscribers, 'subscriber_counts': subscriber_counts,
+            'subscriber_topics': topics,
             'load_at_start': load_at_start,
             'fastdds_profile': os.environ.get('FASTRTPS_DEFAULT_PROFILES_FILE',
                                               'none (Fast DDS defaults)'),
@@ -665,21 +677,22 @@ def load_markdown(r: dict) -> str:
             for stage in LOAD_STAGES if stage in r['stages']]
     nan = (float('nan'),) * 4
     around, node_total = r['stages'].get('around', nan), r['stages'].get('node_total', nan)
-    received = {t: sorted(c.get(t, 0) for c in r['subscriber_counts'])
-                for t in SUBSCRIBER_TOPICS}
+    topics = r.get('subscriber_topics', SUBSCRIBER_TOPICS)
+    received = {t: sorted(c.get(t, 0) for c in r['subscriber_counts']) for t in topics}
     load = ', '.join(f'{v:.2f}' for v in r['load_at_start'])
     no_drops = r['dropped'] == 0 and r['failed'] == 0
     return '\n'.join([
         f"### Load: {r['rate_hz']:g} Hz for {r['duration_s']:.0f} s, {r['points']:,}-point "
         f"KITTI frames, {r['subscribers']} extra subscriber processes, {r['executor']}",
         '',
-        f"Each subscriber process (rclpy, own executor) takes ground, obstacles and "
-        f"ground_surface with the node's RELIABLE output QoS; default node parameters "
+        f"Each subscriber process (rclpy, own executor) takes {', '.join(topics)} "
+        f"with the node's RELIABLE output QoS; default node parameters "
         f"(publish_ground_surface on). Load average (1, 5, 15 min) when the publishing "
         f"started: {load} (other jobs may share the 2 cores). First "
         f"{r['warmup_s']:g} s excluded. Stages: handoff = slot wait (subscription callback "
-        'to worker), decode, segment, encode (both subset clouds and the surface cloud), '
-        'surface (its part of encode), publish (the three publish calls); total = decode + '
+        'to worker), decode, segment, encode (both subset clouds, the surface cloud and, when '
+        'subscribed, the labelled cloud), surface and labeled (their parts of encode), publish '
+        '(the publish calls); total = decode + '
         'segment + encode + input checks (process_cloud); around = handoff + total - segment '
         '(everything around segment() but the publish calls); around_without_surface = around - '
         'surface; node_total = handoff + total + publish; ground_published = the node\'s own '
@@ -692,7 +705,7 @@ def load_markdown(r: dict) -> str:
         '',
         '- Messages received by the subscriber processes (per process, sorted): '
         + '; '.join(f"{t} {', '.join(str(c) for c in received[t])}"
-                    for t in SUBSCRIBER_TOPICS) + '.',
+                    for t in topics) + '.',
         f"- Targets (issue 14): no drops after warm-up: {'met' if no_drops else 'NOT met'}; "
         f"node_total p95 <= 50 ms: {fmt(node_total[1])} ms -> "
         f"{'met' if node_total[1] <= 50.0 else 'NOT met'}; around segment() <= 3 ms median: "
@@ -743,7 +756,8 @@ def overload_markdown(r: dict) -> str:
 
 
 KEYS = ('latency-single', 'latency-multi', 'latency-process', 'load-single', 'load-multi',
-        'load-process', 'overload-single', 'overload-multi')
+        'load-process', 'load-single-labeled', 'load-multi-labeled', 'load-process-labeled',
+        'overload-single', 'overload-multi')
 
 
 def _sub_blocks(text: str) -> dict:
@@ -804,12 +818,15 @@ def main(argv=None) -> int:
     ap.add_argument('--node-process', action='store_true',
                     help='with --latency: run the node alone in a child process (as ros2 run '
                          'does) instead of in this process beside the publisher')
+    ap.add_argument('--labeled', action='store_true',
+                    help='with --subscribers: the subscriber processes also take the labeled '
+                         'cloud, which the node builds only while someone subscribes')
     ap.add_argument('--as-subscriber', action='store_true', help=argparse.SUPPRESS)
     ap.add_argument('--as-node', nargs=3, help=argparse.SUPPRESS)
     ap.add_argument('--no-write', action='store_true', help='print only, keep RESULTS.md')
     args = ap.parse_args(argv)
     if args.as_subscriber:
-        return subscriber_main()
+        return subscriber_main(subscriber_topics(args.labeled))
     if args.as_node:
         return node_process_main(*args.as_node)
     if args.subscribers < 0:
@@ -842,9 +859,10 @@ def main(argv=None) -> int:
         if args.latency:
             r = run_latency(msgs, args.latency_s, slot_period_s=args.slot_sample_ms / 1e3,
                             executor=executor, subscribers=args.subscribers,
-                            node_process=args.node_process)
+                            node_process=args.node_process, labeled=args.labeled)
             key = (f"{'load' if args.subscribers else 'latency'}-"
-                   f"{'process' if args.node_process else executor}")
+                   f"{'process' if args.node_process else executor}"
+                   f"{'-labeled' if args.labeled and args.subscribers else ''}")
             blocks[key] = load_markdown(r) if args.subscribers else latency_markdown(r)
             print(blocks[key] + '\n', flush=True)
         if args.overload:

@@ -117,7 +117,7 @@ def shipped_config_dir() -> tuple[Path, str] | None:
 
 def help_text(prog: str, lifecycle: bool = False) -> tuple[str, str]:
     """(description, epilog) of ``prog --help``, with this installation's file paths."""
-    text = _DESCRIPTION.format(', managed (lifecycle)' if lifecycle else '')
+    text = _DESCRIPTION.format(', managed: lifecycle' if lifecycle else '')
     if lifecycle:
         text += _LIFECYCLE_NOTE
     found = shipped_config_dir()

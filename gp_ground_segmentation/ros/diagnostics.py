@@ -14,10 +14,11 @@ Level rules (first match wins):
          error;
   WARN   a frame within the window was processed but its input looked wrong (``record_frame``
          warnings: empty, no valid point, trailing bytes, empty frame_id, stamp going backwards,
-         field layout changed, cloud not sensor-centred), mean total time > budget (the
-         cold-start first frame, which learns theta from scratch, is left out of this mean
-         once another frame exists), frames dropped within the window, earlier failures within
-         the window, or no input for ``stale_after_s``;
+         field layout changed, cloud not sensor-centred; the node's IMU note when a frame
+         used the static pose for want of an IMU sample near its stamp), mean total time >
+         budget (the cold-start first frame, which learns theta from scratch, is left out of
+         this mean once another frame exists), frames dropped within the window, earlier
+         failures within the window, or no input for ``stale_after_s``;
   OK     otherwise.
 ``ProcessingWindow`` is thread-safe: the subscription callback, the worker thread and the timer
 all update or read it.

@@ -5,13 +5,14 @@ Same topics, parameters, processing and diagnostics as ``node.GroundSegmentation
 code is ``node.SegmentationNodeBase``); only when they exist differs:
 
 * constructed (unconfigured): the parameters are declared, checked against the parameter file
-  (an unknown key, a wrong type or an out-of-range value fails here, as in the plain node) and
-  settable; no topic exists yet;
-* configure: reads the parameters and validates them together (the cross-field rules: a
-  failure logs one line and leaves the node unconfigured, so that a corrected value can be
-  set and configure tried again), creates the publishers (lifecycle publishers), the
-  subscriptions (points, and imu_topic when set), the diagnostics timer and the worker thread
-  (which warms the segmenter up);
+  (an unknown key, a wrong type or an out-of-range value fails here, and main() refuses a
+  file whose values break a cross-field rule, as for the plain node) and settable; no topic
+  exists yet;
+* configure: reads the parameters and validates them together (the cross-field rules, for
+  values from ``-p`` or set since start-up: a failure logs one line and leaves the node
+  unconfigured, so that a corrected value can be set and configure tried again), creates the
+  publishers (lifecycle publishers), the subscriptions (points, and imu_topic when set), the
+  diagnostics timer and the worker thread (which warms the segmenter up);
 * activate: clouds are processed and the outputs and /diagnostics published;
 * deactivate: clouds are no longer processed (counted as ``frames_while_inactive``) and nothing
   is published; the subscriptions stay matched, the segmenter keeps its learned theta, the

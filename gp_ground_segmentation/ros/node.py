@@ -213,6 +213,7 @@ class SegmentationNodeBase:
             self._segmenter = self._segmenter_factory(self._declared_params)
             self._static_params = self._declared_params  # the worker's, without the IMU pose
             self._pending_params = None
+            self._last_stamp = self._last_layout = None  # a new stream for the input checks
             self._cond = threading.Condition()
             self._slot = deque(maxlen=int(node_values['queue_size']))
             self._create_endpoints(node_values)
@@ -684,13 +685,13 @@ class GroundSegmentationNode(SegmentationNodeBase, Node):
         log the 'listening on' line now (main() does it itself once its checks passed)."""
         Node.__init__(self, NODE_NAME, **node_kwargs)
         self._init_state(segmenter_factory)
+        self.accepting = True  # from its first cloud on
         try:
             self._declare_parameters()
             self._configure()
         except BaseException:
             Node.destroy_node(self)
             raise
-        self.accepting = True
         if announce:
             self.announce()
 

@@ -179,3 +179,13 @@ def test_without_imu_topic_there_is_no_imu_subscription(ros_harness):
     h = ros_harness()
     assert h.node.gravity is None and h.node.last_imu_pose is None
     assert not [s for s in h.node.subscriptions if 'Imu' in str(s.msg_type)]
+
+
+def test_an_invalid_imu_topic_stops_the_node_with_one_line():
+    from conftest import NODE_MODULE, start_module
+    proc = start_module(NODE_MODULE, '--ros-args', '-p', 'imu_topic:=bad topic!')
+    out, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 1, out
+    lines = out.strip().splitlines()
+    assert len(lines) == 1 and 'FATAL' in lines[0] and "parameter 'imu_topic'" in lines[0], out
+    assert 'Invalid topic name' in lines[0] and 'Traceback' not in out

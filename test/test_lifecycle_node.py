@@ -24,7 +24,7 @@ class LifecycleHarness:
     """The managed node and a peer (ChangeState/GetState clients, a 'points' publisher,
     ground and obstacles subscribers) in a private context, spun in a background thread."""
 
-    def __init__(self, parameter_overrides=()):
+    def __init__(self, parameter_overrides=(), **node_kwargs):
         import rclpy
         from lifecycle_msgs.srv import ChangeState, GetState
         from rclpy.executors import MultiThreadedExecutor
@@ -37,7 +37,7 @@ class LifecycleHarness:
         rclpy.init(context=self.context)
         overrides = [Parameter('diagnostics_period_s', value=0.2)] + list(parameter_overrides)
         self.node = GroundSegmentationLifecycleNode(context=self.context,
-                                                    parameter_overrides=overrides)
+                                                    parameter_overrides=overrides, **node_kwargs)
         self.peer = rclpy.create_node('gp_lifecycle_peer', context=self.context)
         self.lock = threading.Lock()
         self.ground, self.obstacles = [], []
@@ -238,3 +238,15 @@ def test_console_script_help_says_it_is_managed():
     out, _ = proc.communicate(timeout=60)
     assert proc.returncode == 0
     assert out.startswith('usage: ground_segmentation_lifecycle_node') and 'configure' in out
+
+
+def test_a_configure_that_raises_fails_cleanly(lifecycle):
+    made = []
+
+    def broken_factory(params):
+        made.append(params)
+        raise RuntimeError('no segmenter today')
+    h = lifecycle(segmenter_factory=broken_factory)
+    assert not h.transition('configure') and h.state() == 'unconfigured'
+    assert made and h.ours(h.node.publishers) == [] and h.ours(h.node.subscriptions) == []
+    assert h.transition('shutdown') and h.state() == 'finalized'

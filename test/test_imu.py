@@ -16,7 +16,8 @@ import pytest
 from conftest import quaternion_of
 
 from gp_ground_segmentation.core.sensor_frame import SensorPose
-from gp_ground_segmentation.ros.imu import (GravityTracker, roll_pitch_from_up,
+from gp_ground_segmentation import SegmenterParams
+from gp_ground_segmentation.ros.imu import (GravityTracker, frame_params, roll_pitch_from_up,
                                             rotation_from_rpy, up_from_acceleration,
                                             up_from_orientation)
 
@@ -145,3 +146,13 @@ def test_messages_of_any_imu_type_and_unusable_samples():
     unusable = GravityTracker()
     assert not unusable.add_message(imu(4, 0, (0, 0, 0, 0), -1.0, (0.0, 0.0, 0.0)))
     assert unusable.samples_unusable == 1 and unusable.pose_at(4.0).age_s is None
+
+
+def test_frame_params_take_the_imu_roll_and_pitch_only_from_the_imu():
+    static = SegmenterParams(sensor_z_m=1.8, sensor_pitch_rad=0.1, ground_threshold_m=0.25)
+    tracker = GravityTracker()
+    assert frame_params(static, tracker.pose_at(1.0, 0.0, 0.1)) is static  # no sample: static
+    tracker.add(1.0, (math.sin(5 * DEG), 0.0, 0.0, math.cos(5 * DEG)))
+    params = frame_params(static, tracker.pose_at(1.0, 0.0, 0.1))
+    assert params.sensor_roll_rad == pytest.approx(10 * DEG) and params.sensor_pitch_rad == 0.0
+    assert params.sensor_z_m == 1.8 and params.ground_threshold_m == 0.25  # the rest kept

@@ -30,7 +30,7 @@ pitch of R_y(pitch) R_x(roll), which levels the cloud.
 nearest a cloud's header stamp, with its age |cloud stamp - IMU stamp| (stamps only, never the
 wall clock), or the static pose with a one-line note when no sample lies within
 ``max_age_s``. It is thread-safe: the node adds samples from its executor and reads from its
-worker thread.
+worker thread. ``frame_params`` turns the pose into the frame's SegmenterParams.
 """
 
 from __future__ import annotations
@@ -43,8 +43,10 @@ from typing import NamedTuple, Optional
 
 import numpy as np
 
-__all__ = ['GravityTracker', 'ImuPose', 'rotation_from_rpy', 'roll_pitch_from_up',
-           'up_from_orientation', 'up_from_acceleration', 'stamp_seconds']
+from ..core.params import SegmenterParams
+
+__all__ = ['GravityTracker', 'ImuPose', 'frame_params', 'rotation_from_rpy',
+           'roll_pitch_from_up', 'up_from_orientation', 'up_from_acceleration', 'stamp_seconds']
 
 _MIN_ACCEL = 1e-6  # m/s^2: below this an acceleration has no direction (free fall, zeros)
 
@@ -102,6 +104,15 @@ class ImuPose(NamedTuple):
     age_s: Optional[float]  # |cloud stamp - stamp of the nearest IMU sample| (s); None: none
     source: str  # 'orientation', 'acceleration' or 'static'
     note: Optional[str]  # one line when the static pose was used, else None
+
+
+def frame_params(static: SegmenterParams, pose: ImuPose) -> SegmenterParams:
+    """The segmenter parameters of one frame: ``static`` (the configured ones) with the roll and
+    pitch of ``pose`` when it comes from the IMU, else ``static`` itself (what the node gives
+    its segmenter per frame; a bag replay taking an IMU topic does the same)."""
+    if not pose.from_imu:
+        return static
+    return static.replace(sensor_roll_rad=pose.roll, sensor_pitch_rad=pose.pitch)
 
 
 class GravityTracker:

@@ -79,7 +79,7 @@ from .config import (NODE_NAME, NODE_PARAMS, ParameterConfigError, all_param_spe
                      check_param_value, is_ros_builtin, split_params)
 from .diagnostics import ProcessingWindow, diagnostics_array, diagnostics_status
 from .entry import one_line as _one_line, run_node
-from .imu import GravityTracker, stamp_seconds
+from .imu import GravityTracker, frame_params, stamp_seconds
 from ..core.params import SegmenterParams
 from .pipeline import (OUTPUT_SWITCHES, add_labeled, add_surface, process_cloud,
                        warm_up as warm_up_outputs)
@@ -434,8 +434,7 @@ class SegmentationNodeBase:
         try:
             pose = gravity.pose_at(stamp_seconds(msg.header.stamp), static.sensor_roll_rad,
                                    static.sensor_pitch_rad)
-            params = static if not pose.from_imu else static.replace(
-                sensor_roll_rad=pose.roll, sensor_pitch_rad=pose.pitch)
+            params = frame_params(static, pose)
             if params != self._segmenter.params:
                 self._use_params(params)
         except Exception as exc:  # the IMU must never cost the frame: the static pose

@@ -15,6 +15,8 @@ from pathlib import Path
 
 import pytest
 
+from scenes.real_data import DATA_DIR
+
 
 def _claim_domain_id(first: int = 1, last: int = 100):
     """A DDS domain id in first..last that no other process holding this claim uses, and the
@@ -58,7 +60,7 @@ os.environ['ROS_DOMAIN_ID'] = str(_DOMAIN_ID)
 os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
 
 REPO = Path(__file__).resolve().parents[1]
-DATA = REPO.parent / 'shared' / 'data'
+DATA = DATA_DIR  # scenes/real_data.py finds ../shared/data
 BAG = DATA / 'kitti00_velodyne_points'
 NODE_MODULE = 'gp_ground_segmentation.ros.node'
 

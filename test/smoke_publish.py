@@ -18,7 +18,10 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
 
-BAG = Path(__file__).resolve().parents[1].parent / 'shared' / 'data' / 'kitti00_velodyne_points'
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # scenes/ of this checkout
+from scenes.real_data import DATA_DIR  # noqa: E402
+
+BAG = DATA_DIR / 'kitti00_velodyne_points'
 
 
 def _cloud():

@@ -15,10 +15,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import assert_output_like_input, module_env
+from conftest import DATA, REPO, assert_output_like_input, module_env
 
-REPO = Path(__file__).resolve().parents[1]
-DATA = REPO.parent / 'shared' / 'data'
 BAG = DATA / 'kitti00_velodyne_points'
 TOPIC = '/velodyne_points'
 

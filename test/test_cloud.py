@@ -11,7 +11,6 @@ import struct
 import subprocess
 import sys
 import types
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -25,8 +24,8 @@ from gp_ground_segmentation.ros import cloud as cloud_module
 from gp_ground_segmentation.ros.cloud import (
     POINTFIELD_DTYPES, CloudFormatError, cloud_xyz, fields_dtype, float32_cloud, make_cloud,
     point_rows, read_cloud, split_cloud, subset_cloud, xyz_dtype)
+from scenes.real_data import DATA_DIR as DATA
 
-DATA = Path(__file__).resolve().parents[1].parent / 'shared' / 'data'
 STRUCT_CHARS = {1: 'b', 2: 'B', 3: 'h', 4: 'H', 5: 'i', 6: 'I', 7: 'f', 8: 'd'}
 SIZES = {k: struct.calcsize(v) for k, v in STRUCT_CHARS.items()}
 

@@ -2,7 +2,6 @@
 """Tests for gp_ground_segmentation.tools.io: KITTI .bin/.label and PCD (ascii, binary, LZF)."""
 
 import struct
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -10,8 +9,7 @@ import pytest
 from gp_ground_segmentation.tools.io import (
     PointFileError, lzf_decompress, read_kitti_bin, read_pcd, read_points_file,
     read_semantickitti_labels, write_pcd)
-
-DATA = Path(__file__).resolve().parents[1].parent / 'shared' / 'data'
+from scenes.real_data import DATA_DIR as DATA
 
 
 def need(path):

@@ -11,8 +11,8 @@ from scenes.baselines import constant_height_ground, ransac_plane_ground
 from gp_ground_segmentation.tools.evaluation import ground_metrics, truth_metrics
 from gp_ground_segmentation.tools.io import read_kitti_bin, read_semantickitti_labels
 from scenes.synthetic import make_scene, simulate_scan
+from scenes.real_data import DATA_DIR as DATA
 
-DATA = Path(__file__).resolve().parents[1].parent / 'shared' / 'data'
 LABELED_BIN = DATA / 'kitti_sequnknown_spvnas_000000.bin'
 LABELED_LABELS = DATA / 'kitti_sequnknown_spvnas_000000.label'
 needs_data = pytest.mark.skipif(not LABELED_BIN.exists(), reason=f'{DATA} not present')

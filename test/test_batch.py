@@ -16,10 +16,10 @@ from pathlib import Path
 
 import pytest
 
+from conftest import DATA, REPO  # noqa: E402
+
 pytest.importorskip('distributed')
 
-REPO = Path(__file__).resolve().parents[1]
-DATA = REPO.parent / 'shared' / 'data'
 BAG = DATA / 'kitti00_velodyne_points'
 BINS = [DATA / 'labeled' / f'semantickitti_seq00_00000{i}.bin' for i in (0, 1)]
 TOPIC = '/velodyne_points'
@@ -208,7 +208,7 @@ class _Client:
 
 
 def test_paths_workers_cannot_see_are_refused_up_front(inputs, tmp_path):
-    from gp_ground_segmentation.tools.cli import CliError
+    from gp_ground_segmentation.tools.errors import CliError
     from gp_ground_segmentation.tools.engine import DaskEngine, _visible
     assert _visible([str(inputs / 'scans'), '/nope'], None) == {'missing': ['/nope'],
                                                                 'token': True}

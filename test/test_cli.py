@@ -9,15 +9,13 @@ rebuilds the shipped sample bag bit for bit, and fails with one line and status 
 import hashlib
 import json
 import re
-from pathlib import Path
 
 import numpy as np
 import pytest
 
+from conftest import DATA, REPO
 from gp_ground_segmentation.tools.cli import main
 
-REPO = Path(__file__).resolve().parents[1]
-DATA = REPO.parent / 'shared' / 'data'
 SCAN = DATA / 'kitti_sequnknown_spvnas_000000.bin'
 LABELS = DATA / 'kitti_sequnknown_spvnas_000000.label'
 BAG = DATA / 'kitti00_velodyne_points'
@@ -47,7 +45,9 @@ def test_eval_json_with_labels(capsys):
     assert m['tp'] + m['fp'] + m['fn'] + m['tn'] == n_evaluated
     assert m['precision'] == pytest.approx(m['tp'] / (m['tp'] + m['fp']))
     assert m['recall'] == pytest.approx(m['tp'] / (m['tp'] + m['fn']))
-    assert doc['vegetation_is_ground'] is False
+    assert m['iou'] == pytest.approx(m['tp'] / (m['tp'] + m['fp'] + m['fn']))
+    assert doc['protocol'] == 'vegetation-nonground' and doc['cold'] is False
+    assert doc['pooled']['tp'] == m['tp'] and doc['pooled']['f1'] == pytest.approx(m['f1'])
     for stage in ('decode', 'encode', 'total'):
         assert frame['timings_ms'][stage] > 0
     assert set(frame['hyperparameters']) == {'sigma_f', 'gain', 'sigma_n'}
@@ -82,9 +82,65 @@ def test_eval_scores_rellis_labels_with_their_classes_and_flags_another_ontology
     doc = json.loads(captured.out)
     assert doc['ground_classes'] == [1, 3, 10, 23, 31, 33] and 'note' not in captured.err
     assert doc['frames'][0]['metrics']['f1'] > 0.9  # README: 0.953 with the defaults
+    # Patchwork++'s protocol leaves RELLIS-3D's 19 bush out of the score
     assert main(['eval', str(scan), '--labels', str(labels), '--dataset', 'rellis3d',
-                 '--vegetation-ground']) == 2
-    assert '--vegetation-ground adds SemanticKITTI class 70' in capsys.readouterr().err
+                 '--protocol', 'patchworkpp', '--json']) == 0
+    doc = json.loads(capsys.readouterr().out)
+    classes = np.fromfile(labels, dtype='<u4') & 0xFFFF
+    assert doc['ignored_classes'] == [0, 19]
+    scored = int(np.count_nonzero(~np.isin(classes, (0, 19))))
+    assert doc['frames'][0]['metrics']['evaluated_points'] == scored
+
+
+SEQ00 = [DATA / 'labeled' / f'semantickitti_seq00_00000{i}' for i in range(3)]
+needs_seq00 = pytest.mark.skipif(not all(s.with_suffix('.label').is_file() for s in SEQ00),
+                                 reason=f'KITTI 00 labelled frames not found in {DATA}')
+
+
+def _eval_json(capsys, *extra):
+    argv = (['eval'] + [str(s.with_suffix('.bin')) for s in SEQ00] + ['--labels']
+            + [str(s.with_suffix('.label')) for s in SEQ00] + ['--json', *extra])
+    assert main(argv) == 0
+    return json.loads(capsys.readouterr().out)
+
+
+@needs_seq00
+def test_eval_pools_several_frames_by_summing_their_counts(capsys):
+    doc = _eval_json(capsys, '--protocol', 'patchworkpp', '--cold')
+    assert doc['protocol'] == 'patchworkpp' and doc['ignored_classes'] == [0, 1, 70]
+    per_frame = [f['metrics'] for f in doc['frames']]
+    pooled = doc['pooled']
+    for key in ('tp', 'fp', 'fn', 'tn', 'evaluated_points'):
+        assert pooled.get(key, sum(m[key] for m in per_frame)) == sum(m[key] for m in per_frame)
+    tp, fp, fn = pooled['tp'], pooled['fp'], pooled['fn']
+    assert pooled['f1'] == pytest.approx(2 * tp / (2 * tp + fp + fn))  # not a mean of F1
+    assert pooled['iou'] == pytest.approx(tp / (tp + fp + fn))
+    # vegetation (70) is out of the score: the evaluated points are those of no class 0/1/70
+    for f, stem in zip(doc['frames'], SEQ00):
+        classes = np.fromfile(stem.with_suffix('.label'), dtype='<u4') & 0xFFFF
+        assert f['metrics']['evaluated_points'] == int((~np.isin(classes, (0, 1, 70))).sum())
+    # --cold: each frame as if it were alone (a fresh segmenter), so frame 2 scores the same
+    alone = main(['eval', str(SEQ00[2].with_suffix('.bin')), '--labels',
+                  str(SEQ00[2].with_suffix('.label')), '--protocol', 'patchworkpp', '--json'])
+    assert alone == 0
+    assert json.loads(capsys.readouterr().out)['frames'][0]['metrics'] == per_frame[2]
+
+
+@needs_seq00
+def test_eval_text_prints_a_pooled_line_under_the_protocol(capsys):
+    argv = (['eval'] + [str(s.with_suffix('.bin')) for s in SEQ00] + ['--labels']
+            + [str(s.with_suffix('.label')) for s in SEQ00])
+    assert main(argv) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert sum('ground precision' in line for line in lines) == 4
+    (pooled,) = [line for line in lines if 'pooled' in line]
+    assert pooled.startswith('pooled over 3 frames') and 'protocol vegetation-nonground' in pooled
+    doc = _eval_json(capsys)  # the same frames, same segmenter history: the same numbers
+    assert f"F1 {doc['pooled']['f1']:.4f}" in pooled and f"TP {doc['pooled']['tp']} " in pooled
+    # a protocol is one of the listed names
+    with pytest.raises(SystemExit) as exit_status:
+        main(argv + ['--protocol', 'nonsense'])
+    assert exit_status.value.code == 2 and 'patchworkpp' in capsys.readouterr().err
 
 
 @needs_data
@@ -95,7 +151,7 @@ def test_eval_without_labels_several_inputs_and_repeat(capsys):
     assert [f['input'] for f in doc['frames']][:2] == [str(SCAN), str(pcd)]
     assert doc['frames'][2]['input'].startswith(f'{BAG}:2')
     assert all('metrics' not in f and f['repeat'] == 2 for f in doc['frames'])
-    assert all(0 < f['ground_share'] < 1 for f in doc['frames'])
+    assert all(0 < f['ground_share'] < 1 for f in doc['frames']) and doc['pooled'] is None
     assert main(['eval', str(pcd)]) == 0
     out = capsys.readouterr().out
     assert 'ground share' in out and 'precision' not in out

@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 
 from gp_ground_segmentation.tools.evaluation import (
-    GROUND_CLASSES, IGNORED_CLASSES, RELLIS_3D, ground_metrics, ground_truth_from_labels,
-    pooled_metrics, truth_metrics)
+    DEFAULT_PROTOCOL, GROUND_CLASSES, IGNORED_CLASSES, ONTOLOGIES, PATCHWORKPP, PROTOCOLS,
+    RELLIS_3D, SEMANTIC_KITTI, VEGETATION_GROUND, VEGETATION_NONGROUND, ground_metrics,
+    ground_truth_from_labels, metrics_from_counts, pooled_metrics, truth_metrics)
 
 
 def test_truth_metrics_hand_computed():
@@ -22,6 +23,12 @@ def test_truth_metrics_hand_computed():
     assert m['precision'] == pytest.approx(3 / 5)
     assert m['recall'] == pytest.approx(3 / 4)
     assert m['f1'] == pytest.approx(2 * 0.6 * 0.75 / 1.35)
+    assert m['iou'] == pytest.approx(3 / (3 + 2 + 1))  # GroundGrid's IoU_g = TP/(TP+FP+FN)
+
+
+def test_iou_is_nan_only_when_there_is_nothing_to_count():
+    assert metrics_from_counts(0, 0, 4)['iou'] == 0.0
+    assert math.isnan(metrics_from_counts(0, 0, 0, 7)['iou'])
 
 
 def test_pooled_metrics_sum_the_counts():
@@ -31,6 +38,7 @@ def test_pooled_metrics_sum_the_counts():
     assert (m['tp'], m['fp'], m['fn'], m['tn']) == (4, 2, 4, 4)
     assert m['precision'] == pytest.approx(4 / 6) and m['recall'] == pytest.approx(4 / 8)
     assert m['f1'] == pytest.approx(2 * 4 / (2 * 4 + 2 + 4))
+    assert m['iou'] == pytest.approx(4 / (4 + 2 + 4))
     assert pooled_metrics([]) is None and pooled_metrics([None]) is None
     assert pooled_metrics([{'tp': 0, 'fp': 2, 'fn': 0}])['f1'] == 0.0  # a call, not one hit
     assert math.isnan(pooled_metrics([{'tp': 0, 'fp': 0, 'fn': 0, 'tn': 5}])['f1'])
@@ -57,8 +65,12 @@ def test_semantic_kitti_classes_and_instance_bits():
     assert m['precision'] == pytest.approx(0.5)
     assert m['recall'] == pytest.approx(2 / 6)
     # vegetation counted as ground in the Patchwork variant: 70 turns from FP to TP
-    mv = ground_metrics(pred, raw, vegetation_is_ground=True)
+    mv = ground_metrics(pred, raw, protocol=VEGETATION_GROUND)
     assert (mv['tp'], mv['fp'], mv['fn'], mv['tn']) == (3, 1, 4, 2)
+    # Patchwork++'s protocol: vegetation not scored at all, the FP on it is gone
+    mp = ground_metrics(pred, raw, protocol=PATCHWORKPP)
+    assert mp['evaluated_points'] == 9
+    assert (mp['tp'], mp['fp'], mp['fn'], mp['tn']) == (2, 1, 4, 2)
 
 
 def test_class_lists_match_protocol():
@@ -99,5 +111,21 @@ def test_rellis3d_ontology_has_its_own_ground_and_void():
     assert (m['tp'], m['fp'], m['fn'], m['tn']) == (1, 1, 5, 3)
     # the same ids read as SemanticKITTI: only 40 is ground, 0 and 1 are ignored
     assert ground_truth_from_labels(classes)[0].tolist() == [False] * 10 + [True]
-    with pytest.raises(ValueError, match='vegetation_is_ground'):
-        ground_truth_from_labels(classes, vegetation_is_ground=True, ontology=RELLIS_3D)
+    # Patchwork++'s protocol leaves 19 bush out of the score; 4 tree stays non-ground
+    truth, evaluated = ground_truth_from_labels(classes, RELLIS_3D, PATCHWORKPP)
+    assert truth.tolist() == [False] + [True] * 6 + [False] * 4
+    assert evaluated.tolist() == [False] + [True] * 8 + [False, True]
+    m = ground_metrics(pred, classes, ontology=RELLIS_3D, protocol=PATCHWORKPP)
+    assert (m['tp'], m['fp'], m['fn'], m['tn']) == (1, 0, 5, 3)
+
+
+def test_protocols_by_name_and_their_class_lists():
+    assert list(PROTOCOLS) == ['vegetation-nonground', 'patchworkpp', 'vegetation-ground']
+    assert DEFAULT_PROTOCOL is VEGETATION_NONGROUND
+    assert set(ONTOLOGIES) == {'semantickitti', 'rellis3d'}
+    assert VEGETATION_NONGROUND.classes(SEMANTIC_KITTI) == (GROUND_CLASSES, IGNORED_CLASSES)
+    assert PATCHWORKPP.classes(SEMANTIC_KITTI) == (GROUND_CLASSES, (0, 1, 70))
+    assert VEGETATION_GROUND.classes(SEMANTIC_KITTI) == ((40, 44, 48, 49, 60, 70, 72), (0, 1))
+    assert PATCHWORKPP.classes(RELLIS_3D) == ((1, 3, 10, 23, 31, 33), (0, 19))
+    with pytest.raises(TypeError):  # the protocol is a keyword, never a stray positional bool
+        ground_metrics(np.zeros(1, bool), np.zeros(1, np.uint32), False)

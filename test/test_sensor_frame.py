@@ -3,7 +3,6 @@
 'not sensor-centred' warning."""
 
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,8 +14,8 @@ from gp_ground_segmentation.core.sensor_frame import (NOT_CENTRED, SensorPose, c
                                                       cloud_notes, to_levelled_frame, units_note)
 from gp_ground_segmentation.tools.evaluation import ground_metrics
 from scenes.synthetic import make_scene, simulate_scan
+from scenes.real_data import DATA_DIR as DATA
 
-DATA = Path(__file__).resolve().parents[1].parent / 'shared' / 'data'
 LABELED_BIN = DATA / 'kitti_sequnknown_spvnas_000000.bin'
 LABELED_LABELS = DATA / 'kitti_sequnknown_spvnas_000000.label'
 
@@ -184,8 +183,7 @@ def test_real_frame_shifted_20_m():
     shifted[:, 0] += 20.0
 
     def f1(cloud, params):
-        return ground_metrics(GroundSegmenter(params).segment(cloud).ground_mask, labels,
-                              False)['f1']
+        return ground_metrics(GroundSegmenter(params).segment(cloud).ground_mask, labels)['f1']
     assert f1(shifted, SegmenterParams()) < 0.955
     assert f1(shifted, SegmenterParams(sensor_x_m=20.0)) > 0.97
     assert centring_note(shifted) is not None and centring_note(points) is None

@@ -11,17 +11,14 @@ for its scan; bad input fails in one line.
 """
 
 import json
-from pathlib import Path
 
-import numpy as np
 import pytest
 
 pytest.importorskip('optuna')
 
+from conftest import DATA, REPO  # noqa: E402
 from gp_ground_segmentation.tools import tune  # noqa: E402
 
-REPO = Path(__file__).resolve().parents[1]
-DATA = REPO.parent / 'shared' / 'data'
 LABELED = DATA / 'labeled'
 SEQ00 = LABELED / 'semantickitti_seq00_000000.bin'
 SPVNAS = DATA / 'kitti_sequnknown_spvnas_000000.bin'
@@ -53,8 +50,8 @@ def test_readme_has_the_generated_search_space_table():
 
 @needs_data
 def test_rellis_ontology_and_scene_rule():
-    from gp_ground_segmentation.tools.evaluation import DATASET_CLASSES
-    ground, ignored = DATASET_CLASSES['rellis3d']
+    from gp_ground_segmentation.tools.evaluation import DEFAULT_PROTOCOL, ONTOLOGIES
+    ground, ignored = DEFAULT_PROTOCOL.classes(ONTOLOGIES['rellis3d'])
     (frame,) = tune.labelled_frames([str(RELLIS)], None, ground, ignored, tune.DEFAULT_SCENE_RULE)
     assert frame.scene == 'rellis3d_examplebundle'
     (counts,) = tune.evaluate({}, [frame])
@@ -63,7 +60,8 @@ def test_rellis_ontology_and_scene_rule():
     assert sum(counts.values()) == 61781
     assert tune.pooled_f1([counts]) > 0.5
     frames = tune.labelled_frames([str(SEQ00), str(LABELED / 'semantickitti_seq00_000001.bin')],
-                                  str(LABELED), *DATASET_CLASSES['semantickitti'],
+                                  str(LABELED),
+                                  *DEFAULT_PROTOCOL.classes(ONTOLOGIES['semantickitti']),
                                   tune.DEFAULT_SCENE_RULE)
     assert {f.scene for f in frames} == {'semantickitti_seq00'}
 
@@ -71,8 +69,8 @@ def test_rellis_ontology_and_scene_rule():
 @needs_data
 def test_rule_breaking_trials_are_pruned_not_crashed():
     from gp_ground_segmentation.tools.engine import InProcessEngine
-    from gp_ground_segmentation.tools.evaluation import DATASET_CLASSES
-    frames = tune.labelled_frames([str(SEQ00)], None, *DATASET_CLASSES['semantickitti'],
+    from gp_ground_segmentation.tools.evaluation import DEFAULT_PROTOCOL, SEMANTIC_KITTI
+    frames = tune.labelled_frames([str(SEQ00)], None, *DEFAULT_PROTOCOL.classes(SEMANTIC_KITTI),
                                   tune.DEFAULT_SCENE_RULE)
     bad = dict(tune.search_space_defaults(), sigma_n_min_m=0.05, sigma_n_init_m=0.02)
     study = tune.run_study(InProcessEngine(), frames, 3, seed=0,
@@ -200,10 +198,3 @@ def test_without_optuna_one_line(monkeypatch, tmp_path, capsys):
     assert main(['tune', str(SEQ00), '--out', str(tmp_path / 'p.yaml')]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "pip install 'gp_ground_segmentation[tune]'" in err[0]
-
-
-def test_pooled_f1_sums_counts():
-    counts = [{'tp': 8, 'fp': 2, 'fn': 0, 'tn': 5}, {'tp': 0, 'fp': 0, 'fn': 2, 'tn': 1}]
-    precision, recall = 8 / 10, 8 / 10
-    assert tune.pooled_f1(counts) == pytest.approx(2 * precision * recall / (precision + recall))
-    assert np.isnan(tune.pooled_f1([{'tp': 0, 'fp': 0, 'fn': 0, 'tn': 3}]))

@@ -30,6 +30,23 @@ from pathlib import Path
 from typing import Iterator, Optional, Sequence
 
 import numpy as np
+from builtin_interfaces.msg import Time
+from rclpy.serialization import deserialize_message, serialize_message
+from rosbags.highlevel import AnyReader
+from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer, WriterError
+from rosbags.typesys import Stores, get_typestore
+from sensor_msgs.msg import PointCloud2, PointField
+from std_msgs.msg import Header
+
+from ..core import gp_compiled
+from ..core.params import SegmenterParams
+from ..core.segmenter import GroundSegmenter
+from ..ros import pipeline
+from ..ros.cloud import CloudFormatError, make_cloud, set_data
+from ..ros.config import load_params_file, node_param_defaults
+from ..ros.diagnostics import ProcessingWindow, diagnostics_array, diagnostics_status
+from .errors import BagError, one_line
+from .io import PointFileError, read_points_file
 
 POINTCLOUD2 = 'sensor_msgs/msg/PointCloud2'
 DIAGNOSTIC_ARRAY = 'diagnostic_msgs/msg/DiagnosticArray'
@@ -40,13 +57,9 @@ SYNTHETIC_PERIOD_NS = 100_000_000  # point files get stamps i * 0.1 s (a 10 Hz s
 SYNTHETIC_FRAME_ID = 'velodyne'
 
 
-class BagError(ValueError):
-    """A bag or point-file input/output problem, described in one line."""
-
-
 def _one_line(err: BaseException) -> str:
-    text = ' '.join(str(err).split()) or type(err).__name__
-    return text if len(text) < 300 else text[:297] + '...'
+    """A reader's error in one line, short enough to sit inside a sentence naming the bag."""
+    return one_line(err, limit=300)
 
 
 def _reader_errors() -> tuple:
@@ -134,11 +147,6 @@ def _expand_inputs(inputs: Sequence) -> tuple[str, list[Path]]:
 def _pointfile_cloud(path: Path, index: int, frame_id: str = SYNTHETIC_FRAME_ID):
     """A PointCloud2 from a KITTI .bin or a .pcd, stamped i * 0.1 s (from 0, i.e. 1970: point
     files have no time), with ``frame_id``."""
-    from builtin_interfaces.msg import Time
-    from std_msgs.msg import Header
-
-    from ..ros.cloud import make_cloud
-    from .io import read_points_file
     points = read_points_file(path)
     points = np.asarray(points)
     if points.dtype.names is None:
@@ -205,8 +213,6 @@ class FrameSource:
                 pass
 
     def _open_bag(self) -> None:
-        from rosbags.highlevel import AnyReader
-        from rosbags.typesys import Stores, get_typestore
         name = self.description
         try:
             # Older rosbag2 bags (metadata < 8) carry no message definitions: use Jazzy's types.
@@ -250,7 +256,6 @@ class FrameSource:
             yield from self._iter_bag()
 
     def _iter_files(self) -> Iterator[InputFrame]:
-        from .io import PointFileError
         for i, path in enumerate(self.paths[:self.count]):
             try:
                 msg, stamp = _pointfile_cloud(path, i, self.frame_id)
@@ -259,8 +264,6 @@ class FrameSource:
             yield InputFrame(i, stamp, msg)
 
     def _iter_bag(self) -> Iterator[InputFrame]:
-        from rclpy.serialization import deserialize_message
-        from sensor_msgs.msg import PointCloud2
         reader = self._reader
         errors = _reader_errors()
         it = reader.messages(connections=self._connections)
@@ -287,11 +290,6 @@ class FrameSource:
 
 def _ros1_to_rclpy_cloud(m):
     """rclpy PointCloud2 from a rosbags-decoded ROS 1 PointCloud2 (header.seq is dropped)."""
-    from builtin_interfaces.msg import Time
-    from sensor_msgs.msg import PointCloud2, PointField
-    from std_msgs.msg import Header
-
-    from ..ros.cloud import set_data
     out = PointCloud2()
     stamp = Time(sec=int(m.header.stamp.sec), nanosec=int(m.header.stamp.nanosec))
     out.header = Header(stamp=stamp, frame_id=m.header.frame_id)
@@ -318,7 +316,6 @@ def read_frame(spec: str, topic: Optional[str] = None):
     if not path.exists():
         raise BagError(f'{path}: no such file or directory')
     if path.is_file() and is_point_file(path):
-        from .io import PointFileError
         try:
             msg, _ = _pointfile_cloud(path, 0)
         except (PointFileError, OSError) as err:
@@ -430,8 +427,6 @@ class Progress:
 def load_params(params_file: Optional[str]):
     """(SegmenterParams, node params dict) from the node's YAML with the node's own loader
     (``config.load_params_file``), or the defaults when no file is given."""
-    from ..ros.config import load_params_file, node_param_defaults
-    from ..core.params import SegmenterParams
     if params_file is None:
         return SegmenterParams(), node_param_defaults()
     path = Path(params_file)
@@ -454,8 +449,6 @@ def warm_up(log=None, segmenter=None) -> None:
     GP step with its posterior std (replay publishes the ground surface, whose z_std reads
     it), then ``segmenter.warm_up()`` (every compiled stage a frame needs) when a segmenter is
     given, then the output clouds' compiled pass (``pipeline.warm_up``)."""
-    from ..core import gp_compiled
-    from ..ros import pipeline
     try:
         gp_compiled.warm_up()
         if segmenter is not None:
@@ -471,7 +464,6 @@ def warm_up(log=None, segmenter=None) -> None:
 
 
 def _storage_plugin(storage: str):
-    from rosbags.rosbag2 import StoragePlugin
     plugins = {'mcap': StoragePlugin.MCAP, 'sqlite3': StoragePlugin.SQLITE3}
     if storage not in plugins:
         raise BagError(f'unknown storage {storage!r}; choose mcap or sqlite3')
@@ -541,14 +533,6 @@ def replay(inputs: Sequence, out_bag, *, topic: Optional[str] = None,
     (malformed cloud) is skipped, counted and reported with an ERROR diagnostics entry, as the
     node does. Raises BagError.
     """
-    from rclpy.serialization import serialize_message
-    from rosbags.rosbag2 import Writer, WriterError
-    from rosbags.typesys import Stores, get_typestore
-
-    from ..ros.diagnostics import ProcessingWindow
-    from ..ros.pipeline import OUTPUT_SWITCHES
-    from ..core.segmenter import GroundSegmenter
-
     out = Path(out_bag)
     plugin = _storage_plugin(storage)
     if max_frames is not None and max_frames < 1:
@@ -558,13 +542,10 @@ def replay(inputs: Sequence, out_bag, *, topic: Optional[str] = None,
     warm_up(log, segmenter)
     window = ProcessingWindow(int(node_params.get('diagnostics_window', 50)))
     budget_ms = float(node_params.get('processing_budget_ms', 100.0))
-    outputs = {name: bool(node_params[name]) for name in OUTPUT_SWITCHES}
+    outputs = {name: bool(node_params[name]) for name in pipeline.OUTPUT_SWITCHES}
     summary = ReplaySummary(output=str(out))
     t_start = time.perf_counter()
-    if output_prefix is not None and output_prefix.strip('/'):  # '' or '/': the root
-        output_prefix = normalize_topic(output_prefix, '--output-prefix', strict=True)
-    elif output_prefix is not None:
-        output_prefix = ''
+    output_prefix = _output_prefix(output_prefix)
     with FrameSource(inputs, topic, max_frames, frame_id) as source:
         _check_output(out, force, source.paths)
         summary.topic, summary.note = source.topic, source.note
@@ -574,26 +555,15 @@ def replay(inputs: Sequence, out_bag, *, topic: Optional[str] = None,
         tmp = _partial_dir(out)
         if tmp.exists():
             shutil.rmtree(tmp)
-        typestore = get_typestore(Stores.ROS2_JAZZY)
         progress = progress or Progress(source.count)
         try:
-            writer = Writer(tmp, version=9, storage_plugin=plugin)
-            with writer:
-                prefix = source.topic if output_prefix is None else output_prefix
-                conn_ground = writer.add_connection(f'{prefix}/ground', POINTCLOUD2,
-                                                    typestore=typestore)
-                conn_obst = writer.add_connection(f'{prefix}/obstacles', POINTCLOUD2,
-                                                  typestore=typestore)
-                conn_diag = writer.add_connection(DIAGNOSTICS_TOPIC, DIAGNOSTIC_ARRAY,
-                                                  typestore=typestore)
-                conn_surface = None
-                if outputs['publish_ground_surface']:
-                    conn_surface = writer.add_connection(f'{prefix}/ground_surface',
-                                                         POINTCLOUD2, typestore=typestore)
-                conns = (conn_ground, conn_obst, conn_diag, conn_surface)
+            with Writer(tmp, version=9, storage_plugin=plugin) as writer:
+                conns = _output_connections(
+                    writer, source.topic if output_prefix is None else output_prefix,
+                    outputs['publish_ground_surface'])
                 for frame in source:
                     _replay_frame(frame, segmenter, writer, conns, summary, window, budget_ms,
-                                  serialize_message, outputs)
+                                  outputs)
                     progress.update(frame.index + 1)
             if summary.frames == 0:
                 raise BagError(f'none of the {summary.skipped} frame(s) could be segmented: '
@@ -609,14 +579,31 @@ def replay(inputs: Sequence, out_bag, *, topic: Optional[str] = None,
     return summary
 
 
+def _output_prefix(output_prefix: Optional[str]) -> Optional[str]:
+    """``--output-prefix`` as a topic prefix: None (the input topic), '' (the root: '' and '/'
+    both mean it) or a valid absolute topic name."""
+    if output_prefix is None:
+        return None
+    if not output_prefix.strip('/'):
+        return ''
+    return normalize_topic(output_prefix, '--output-prefix', strict=True)
+
+
+def _output_connections(writer, prefix: str, surface: bool) -> tuple:
+    """The writer's (ground, obstacles, diagnostics, surface or None) connections."""
+    typestore = get_typestore(Stores.ROS2_JAZZY)
+    ground = writer.add_connection(f'{prefix}/ground', POINTCLOUD2, typestore=typestore)
+    obstacles = writer.add_connection(f'{prefix}/obstacles', POINTCLOUD2, typestore=typestore)
+    diagnostics = writer.add_connection(DIAGNOSTICS_TOPIC, DIAGNOSTIC_ARRAY, typestore=typestore)
+    ground_surface = (writer.add_connection(f'{prefix}/ground_surface', POINTCLOUD2,
+                                            typestore=typestore) if surface else None)
+    return ground, obstacles, diagnostics, ground_surface
+
+
 def _replay_frame(frame, segmenter, writer, conns, summary, window, budget_ms,
-                  serialize_message, outputs) -> None:
+                  outputs) -> None:
     """Segment one frame, write its clouds and a DiagnosticArray built like the node's;
     ``outputs``: the node's output switches (keywords of ``process_cloud``)."""
-    from ..ros.cloud import CloudFormatError
-    from ..ros.diagnostics import diagnostics_array, diagnostics_status
-    from ..ros.pipeline import frame_timings, process_cloud
-
     conn_ground, conn_obst, conn_diag, conn_surface = conns
     msg = frame.msg
     frame_id = msg.header.frame_id
@@ -625,7 +612,7 @@ def _replay_frame(frame, segmenter, writer, conns, summary, window, budget_ms,
     bag_time_s = frame.timestamp_ns * 1e-9
     window.record_received(frame_id, now=bag_time_s)  # input rate in bag time, not wall time
     try:
-        out = process_cloud(msg, segmenter, **outputs)
+        out = pipeline.process_cloud(msg, segmenter, **outputs)
     except (CloudFormatError, ValueError, RuntimeError) as err:  # the node drops these too
         text = _one_line(err)
         window.record_failure(text, isinstance(err, ValueError), frame_id)
@@ -657,7 +644,7 @@ def _replay_frame(frame, segmenter, writer, conns, summary, window, budget_ms,
     summary.obstacles += n_valid - n_ground
     summary.invalid += res.num_invalid
     summary.thetas.append(tuple(float(v) for v in res.hyperparameters))
-    for k, v in frame_timings(out).items():  # same stage names as the node's diagnostics
+    for k, v in pipeline.frame_timings(out).items():  # same stage names as the node's diagnostics
         summary.add_stage(k, v)
     summary.add_stage('write', (t2 - t1) * 1e3)
     summary.add_stage('frame', (t2 - t0) * 1e3)
@@ -670,12 +657,9 @@ def _replay_frame(frame, segmenter, writer, conns, summary, window, budget_ms,
 def write_sample_bag(source_bag, out_dir, frames: int = 3, topic: str = DEFAULT_TOPIC) -> str:
     """Copy the first ``frames`` messages of ``topic`` unchanged (raw CDR bytes, same bag times)
     into a new zstd-compressed (mcap chunk compression) ROS 2 bag; return the .mcap's sha256."""
-    from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
-
     out = Path(out_dir)
     if out.exists():
         raise BagError(f'{out} exists; remove it first')
-    from rosbags.highlevel import AnyReader
     with AnyReader([Path(source_bag)]) as reader:
         conns = [c for c in reader.connections if c.topic == topic]
         if not conns:

@@ -31,7 +31,9 @@ from typing import Callable, Optional, Sequence
 
 import numpy as np
 
-from .cli import CliError, _expected_errors, _one_line
+from .bag import FrameSource, Progress, load_params, replay
+from .engine import add_engine_arguments, open_engine, peak_rss_mb
+from .errors import EXPECTED_ERRORS, CliError, one_line
 
 PROGRESS_TOPIC = 'gp-ground-seg-batch-progress'
 BAG_SUFFIXES = ('.mcap', '.db3', '.bag')
@@ -56,11 +58,10 @@ def _complete(out: Path) -> bool:
 def count_frames(input_path: str, topic: Optional[str]) -> int:
     """Frames of one input (for the progress total); 0 if it cannot be opened (its task will
     then report why)."""
-    from .bag import FrameSource
     try:
         with FrameSource([input_path], topic) as source:
             return source.count
-    except _expected_errors():
+    except EXPECTED_ERRORS:
         return 0
 
 
@@ -82,15 +83,14 @@ def replay_one(input_path: str, out_bag: str, *, label: str, topic: Optional[str
     """One task: replay ``input_path`` into ``out_bag``; a summary row for input ``label`` (the
     path as the user gave it). Never raises for bad input: the error is the row's, in replay's
     one-line wording."""
-    from .bag import replay
     row = {'input': label, 'output': out_bag, 'status': 'ok', 'error': ''}
     t0 = time.perf_counter()
     try:
         summary = replay([input_path], out_bag, topic=topic, params_file=params_file,
                          storage=storage, force=force,
                          progress=_TaskProgress(label, sink))
-    except _expected_errors() as err:
-        row.update(status='failed', error=_one_line(err), wall_s=time.perf_counter() - t0)
+    except EXPECTED_ERRORS as err:
+        row.update(status='failed', error=one_line(err), wall_s=time.perf_counter() - t0)
         return row
     total = np.asarray(summary.stage_ms.get('total', [np.nan]))
     theta = np.asarray(summary.thetas, dtype=float).reshape(-1, 3)
@@ -182,20 +182,10 @@ def run_batch(inputs: Sequence[str], out_dir, engine, *, topic: Optional[str] = 
     KeyboardInterrupt cancels the outstanding tasks, removes their hidden leftovers, writes the
     summary of what finished and is re-raised.
     """
-    from .bag import Progress, load_params
-    from .engine import peak_rss_mb
     # tasks get absolute paths: a remote worker's working directory is not ours
     out_dir = Path(out_dir).absolute()
     params_file = None if params_file is None else os.path.abspath(params_file)
-    if not inputs:
-        raise CliError('give at least one input')
-    names = [output_name(p) for p in inputs]
-    seen = {}
-    for path, name in zip(inputs, names):
-        if name in seen:
-            raise CliError(f'{seen[name]} and {path} would both be written to {out_dir / name}; '
-                           f'rename one')
-        seen[name] = path
+    names = _output_names(inputs, out_dir)
     if out_dir.exists() and not out_dir.is_dir():
         raise CliError(f'{out_dir} exists and is not a directory')
     if params_file is not None:
@@ -204,57 +194,15 @@ def run_batch(inputs: Sequence[str], out_dir, engine, *, topic: Optional[str] = 
     engine.check_shared(inputs, out_dir)
     report = report or (lambda row: None)
     t0 = time.perf_counter()
-    previous = _previous_rows(out_dir)
-    rows: dict = {}
-    todo = []
-    for path, name in zip(inputs, names):
-        out = out_dir / name
-        if _complete(out) and not force:
-            row = dict(previous.get(str(out), {'input': path, 'output': str(out)}),
-                       status='skipped', error='')
-            rows[path] = row
-            report(row)
-        else:
-            todo.append((path, str(out)))
-    counts = [engine.submit(count_frames, os.path.abspath(path), topic) for path, _ in todo]
-    totals = {path: f.result() for (path, _), f in zip(todo, counts)}
-    progress = Progress(sum(totals.values()), stream=progress_stream)
-    done_frames = {path: 0 for path, _ in todo}
-    lock = threading.Lock()
-
-    def on_progress(msg):
-        with lock:
-            key = msg['input']
-            if key not in done_frames:  # a late event of an earlier batch on this engine
-                return
-            done_frames[key] = max(done_frames[key], int(msg['done']))
-            progress.update(sum(done_frames.values()))
-
-    engine.subscribe(PROGRESS_TOPIC, on_progress)
-    sink = engine.progress_sink(PROGRESS_TOPIC)
-    futures: dict = {}
-    pending: list = []
+    rows, todo = _skip_complete(inputs, names, out_dir, force, report)
+    progress = _BatchProgress(engine, todo, topic, progress_stream)
+    task = {'topic': topic, 'params_file': params_file, 'storage': storage, 'force': force,
+            'sink': engine.progress_sink(PROGRESS_TOPIC)}
     interrupted = False
     try:
-        for path, out in todo:  # in-process, each task runs right here
-            fut = engine.submit(replay_one, os.path.abspath(path), out, label=path,
-                                topic=topic, params_file=params_file, storage=storage,
-                                force=force, sink=sink)
-            futures[fut] = path
-            pending.append(fut)
-        while pending:
-            done, pending = engine.wait_first(pending)
-            for fut in done:
-                row = fut.result()
-                rows[futures[fut]] = row
-                on_progress({'input': futures[fut], 'done': totals.get(futures[fut], 0)})
-                report(row)
+        _run_tasks(engine, todo, task, rows, progress, report)
     except KeyboardInterrupt:
         interrupted = True
-        for fut in pending:
-            cancel = getattr(fut, 'cancel', None)
-            if cancel is not None:
-                cancel()
         raise
     finally:
         progress.close()
@@ -273,6 +221,89 @@ def run_batch(inputs: Sequence[str], out_dir, engine, *, topic: Optional[str] = 
     return result
 
 
+def _output_names(inputs: Sequence[str], out_dir: Path) -> list:
+    """The output name of every input; CliError when there is none or two would collide."""
+    if not inputs:
+        raise CliError('give at least one input')
+    names = [output_name(p) for p in inputs]
+    seen = {}
+    for path, name in zip(inputs, names):
+        if name in seen:
+            raise CliError(f'{seen[name]} and {path} would both be written to {out_dir / name}; '
+                           f'rename one')
+        seen[name] = path
+    return names
+
+
+def _skip_complete(inputs, names, out_dir: Path, force: bool, report: Callable) -> tuple:
+    """({input: row} of the inputs whose complete output exists (reported as skipped, with the
+    earlier run's numbers), [(input, output path)] of those still to do)."""
+    previous = _previous_rows(out_dir)
+    rows, todo = {}, []
+    for path, name in zip(inputs, names):
+        out = out_dir / name
+        if _complete(out) and not force:
+            row = dict(previous.get(str(out), {'input': path, 'output': str(out)}),
+                       status='skipped', error='')
+            rows[path] = row
+            report(row)
+        else:
+            todo.append((path, str(out)))
+    return rows, todo
+
+
+class _BatchProgress:
+    """The batch's progress bar over the frames of every input to do, fed by the tasks'
+    progress events (through the engine) and by their completion."""
+
+    def __init__(self, engine, todo, topic, stream):
+        counts = [engine.submit(count_frames, os.path.abspath(path), topic) for path, _ in todo]
+        self.totals = {path: f.result() for (path, _), f in zip(todo, counts)}
+        self.bar = Progress(sum(self.totals.values()), stream=stream)
+        self.done = {path: 0 for path, _ in todo}
+        self.lock = threading.Lock()
+        engine.subscribe(PROGRESS_TOPIC, self.update)
+
+    def update(self, msg) -> None:
+        with self.lock:
+            key = msg['input']
+            if key not in self.done:  # a late event of an earlier batch on this engine
+                return
+            self.done[key] = max(self.done[key], int(msg['done']))
+            self.bar.update(sum(self.done.values()))
+
+    def finished(self, path) -> None:
+        self.update({'input': path, 'done': self.totals.get(path, 0)})
+
+    def close(self) -> None:
+        self.bar.close()
+
+
+def _run_tasks(engine, todo, task: dict, rows: dict, progress: _BatchProgress,
+               report: Callable) -> None:
+    """Submit one replay task per input to do, collect their rows as they finish; on
+    KeyboardInterrupt cancel those still pending and re-raise."""
+    futures: dict = {}
+    pending: list = []
+    try:
+        for path, out in todo:  # in-process, each task runs right here
+            fut = engine.submit(replay_one, os.path.abspath(path), out, label=path, **task)
+            futures[fut] = path
+            pending.append(fut)
+        while pending:
+            done, pending = engine.wait_first(pending)
+            for fut in done:
+                rows[futures[fut]] = fut.result()
+                progress.finished(futures[fut])
+                report(rows[futures[fut]])
+    except KeyboardInterrupt:
+        for fut in pending:
+            cancel = getattr(fut, 'cancel', None)
+            if cancel is not None:
+                cancel()
+        raise
+
+
 def print_result(result: BatchResult, out_dir: Path, stream=None) -> None:
     stream = stream or sys.stdout
     ok = sum(r['status'] == 'ok' for r in result.rows)
@@ -286,7 +317,6 @@ def print_result(result: BatchResult, out_dir: Path, stream=None) -> None:
 
 def add_parser(sub) -> None:
     """Register ``gp-ground-seg batch``."""
-    from .engine import add_engine_arguments
     p = sub.add_parser('batch', help='replay many bags / point-file directories, one task each',
                        description='Replay each INPUT (a bag, or a directory of .bin/.pcd '
                        'files) exactly as `gp-ground-seg replay INPUT DIR/<name>` does, in this '
@@ -305,7 +335,6 @@ def add_parser(sub) -> None:
 
 
 def cmd_batch(args) -> int:
-    from .engine import open_engine
     out_dir = Path(args.out)
     with open_engine(args.jobs, args.scheduler) as engine:
         if engine.startup_s:

@@ -4,8 +4,9 @@
 Subcommands:
 
 * ``eval FILE...``     segment point files (.bin/.pcd), bag frames (BAG:INDEX) or whole bags; print
-  per-frame ground precision/recall/F1 against labels (when given; SemanticKITTI classes, or
-  --dataset rellis3d, or any --ground-classes) and timings.
+  per-frame ground precision/recall/F1/IoU against labels (when given; SemanticKITTI classes, or
+  --dataset rellis3d, or any --ground-classes; vegetation as --protocol says), pooled over the
+  frames, and timings.
 * ``replay IN OUT``    bag (or point files) in -> ROS 2 bag with <topic>/ground, <topic>/obstacles,
   <topic>/ground_surface (publish_ground_surface on, the default) and /diagnostics out, using
   the node's pipeline and parameter file.
@@ -18,7 +19,8 @@ Subcommands:
 * ``hz TOPIC...``      print topic rates and a one-line summary of the last message.
 
 Every expected failure prints one line ``gp-ground-seg <cmd>: error: ...`` on stderr and exits
-with status 2; there is no traceback for bad input.
+with status 2 (tools/errors.py); there is no traceback for bad input. This module is the entry
+point only: nothing in the package imports it.
 """
 
 from __future__ import annotations
@@ -33,79 +35,16 @@ from pathlib import Path
 import numpy as np
 
 from ..core.allocator import keep_freed_memory
-
-EXIT_ERROR = 2
-
-
-class CliError(Exception):
-    """An expected failure with a one-line message (exit status 2)."""
-
-
-def _one_line(err: BaseException) -> str:
-    text = ' '.join(str(err).split()) or type(err).__name__
-    return text if len(text) < 400 else text[:397] + '...'
-
-
-def _expected_errors() -> tuple:
-    """Exceptions that mean bad input or environment, not a bug: reported in one line."""
-    errors = [CliError, ValueError, OSError, EOFError]
-    try:
-        from rosbags.highlevel import AnyReaderError
-        from rosbags.rosbag1 import ReaderError as Reader1Error
-        from rosbags.rosbag2 import ReaderError as Reader2Error, WriterError
-        errors += [AnyReaderError, Reader1Error, Reader2Error, WriterError]
-    except ImportError:  # pragma: no cover - rosbags is a dependency
-        pass
-    return tuple(errors)
-
-
-# ---------------------------------------------------------------------------------------------
-# label classes (eval, tune)
-# ---------------------------------------------------------------------------------------------
-
-def add_label_class_arguments(p) -> None:
-    """--dataset / --ground-classes / --ignore-classes: which label classes are ground."""
-    from .evaluation import DATASET_CLASSES
-    p.add_argument('--dataset', choices=sorted(DATASET_CLASSES), default='semantickitti',
-                   help='label ontology: its ground and ignored classes (default semantickitti; '
-                   'rellis3d for RELLIS-3D .label files)')
-    p.add_argument('--ground-classes', metavar='C,C,...', help='override the ground classes')
-    p.add_argument('--ignore-classes', metavar='C,C,...', help='override the ignored classes')
-
-
-def label_classes(args) -> tuple:
-    """(ground classes, ignored classes) of add_label_class_arguments' options (and of
-    --vegetation-ground where the command has it)."""
-    from .evaluation import DATASET_CLASSES, SEMANTIC_KITTI
-    ground, ignored = DATASET_CLASSES[args.dataset]
-    if args.ground_classes:
-        ground = _class_list(args.ground_classes)
-    if args.ignore_classes:
-        ignored = _class_list(args.ignore_classes)
-    if getattr(args, 'vegetation_ground', False):
-        if args.dataset != 'semantickitti':
-            raise CliError('--vegetation-ground adds SemanticKITTI class 70; with '
-                           f'--dataset {args.dataset} give --ground-classes instead')
-        ground = tuple(sorted(set(ground) | {SEMANTIC_KITTI.vegetation}))
-    return tuple(ground), tuple(ignored)
-
-
-def _class_list(text: str) -> tuple:
-    try:
-        return tuple(sorted({int(v) for v in text.split(',') if v.strip()}))
-    except ValueError:
-        raise CliError(f'class list {text!r}: expected comma-separated integers, e.g. '
-                       f'40,44,48') from None
-
-
-def no_ground_note(name: str, ground_points: int, ground: tuple):
-    """A one-line note when none of a frame's evaluated labels is a ground class
-    (``ground_points``: how many are, e.g. TP + FN of its metrics; labels of another data set's
-    ontology score 0 without it), else None."""
-    if ground_points:
-        return None
-    return (f'{name}: no labelled point is in the ground classes {",".join(map(str, ground))}; '
-            'labels of another data set? (--dataset rellis3d, --ground-classes)')
+from ..core.segmenter import GroundSegmenter
+from ..ros.pipeline import frame_timings, process_cloud
+from . import batch, play, tune
+from .bag import (FrameSource, is_point_file, load_segmenter_params, read_frame, replay, warm_up,
+                  write_sample_bag)
+from .errors import EXIT_ERROR, EXPECTED_ERRORS, CliError, one_line
+from .evaluation import labelled_ground_truth, pooled_metrics, truth_metrics
+from .io import read_semantickitti_labels
+from .options import add_frame_id_option, add_label_class_arguments, label_classes, no_ground_note
+from .plot import plot_frame
 
 
 # ---------------------------------------------------------------------------------------------
@@ -114,7 +53,6 @@ def no_ground_note(name: str, ground_points: int, ground: tuple):
 
 def _one_point_file(path: Path) -> bool:
     """An ``eval`` input that is one point file: one frame."""
-    from .bag import is_point_file
     return path.is_file() and is_point_file(path)
 
 
@@ -129,7 +67,6 @@ def _point_file_count(inputs):
 
 def _eval_frames(inputs, topic):
     """Yield (name, rclpy PointCloud2) for every input: point files, BAG:INDEX or whole bags."""
-    from .bag import FrameSource, read_frame
     for spec in inputs:
         path = Path(spec)
         if path.exists() and not _one_point_file(path):
@@ -150,6 +87,16 @@ def _nan_to_none(value):
     return value
 
 
+def _metrics_text(m: dict) -> str:
+    """'ground precision .. recall .. F1 .. IoU .. (TP .. FP .. FN .. TN ..' of metrics whose
+    NaN ratios are None."""
+    def fmt(v):
+        return 'n/a' if v is None else f'{v:.4f}'
+    return (f"ground precision {fmt(m['precision'])}  recall {fmt(m['recall'])}  "
+            f"F1 {fmt(m['f1'])}  IoU {fmt(m['iou'])}  (TP {m['tp']} FP {m['fp']} FN {m['fn']} "
+            f"TN {m['tn']}")
+
+
 def _print_eval_row(row: dict, ground: tuple, repeat: int) -> None:
     """The text lines of one ``eval`` frame."""
     share = row['ground_share']
@@ -157,10 +104,7 @@ def _print_eval_row(row: dict, ground: tuple, repeat: int) -> None:
           f"{share if share is None else format(share, '.3f')}")
     if 'metrics' in row:
         m = row['metrics']
-        fmt = (lambda v: 'n/a' if v is None else f'{v:.4f}')
-        print(f"  ground precision {fmt(m['precision'])}  recall {fmt(m['recall'])}  "
-              f"F1 {fmt(m['f1'])}  (TP {m['tp']} FP {m['fp']} FN {m['fn']} TN {m['tn']}, "
-              f"{m['evaluated_points']} labelled points; ground classes "
+        print(f"  {_metrics_text(m)}, {m['evaluated_points']} labelled points; ground classes "
               f"{','.join(map(str, ground))})")
     t = row['timings_ms']
     order = ('decode', 'grid', 'lines', 'gp_fit', 'predict', 'label', 'structure', 'segment',
@@ -174,16 +118,43 @@ def _print_eval_row(row: dict, ground: tuple, repeat: int) -> None:
           f"sigma_n {th['sigma_n']:.4g} m")
 
 
-def cmd_eval(args) -> int:
-    from .bag import load_segmenter_params, warm_up
-    from .evaluation import labelled_ground_truth, truth_metrics
-    from .io import read_semantickitti_labels
-    from ..ros.pipeline import frame_timings, process_cloud
-    from ..core.segmenter import GroundSegmenter
+def _segment_frame(name: str, msg, segmenter, repeat: int) -> tuple:
+    """(result of the first run, the row of one ``eval`` frame without metrics)."""
+    runs = [process_cloud(msg, segmenter) for _ in range(repeat)]
+    out = runs[0]  # labels of the first run: the same warm-start history as the node
+    res = out.result
+    timings = {stage: float(np.median([frame_timings(r)[stage] for r in runs]))
+               for stage in frame_timings(out)}
+    n_valid = int(np.count_nonzero(res.valid_mask))
+    if n_valid == 0:
+        raise CliError(f'{name}: no valid point ({int(res.valid_mask.size)} points, all '
+                       f'NaN/Inf or (0, 0, 0)): nothing to evaluate')
+    n_ground = int(np.count_nonzero(res.ground_mask))
+    row = {'input': name, 'points': int(res.valid_mask.size), 'valid': n_valid,
+           'ground': n_ground, 'ground_share': n_ground / n_valid,
+           'hyperparameters': dict(zip(('sigma_f', 'gain', 'sigma_n'),
+                                       (float(v) for v in res.hyperparameters))),
+           'timings_ms': timings, 'repeat': repeat}
+    return res, row
 
+
+def _score_frame(row: dict, res, labels_file, classes: tuple) -> None:
+    """Add the labels file and the metrics of ``res`` against it to ``row``."""
+    ground, ignored = classes
+    labels = read_semantickitti_labels(labels_file, expected_points=row['points'])
+    row['labels'] = str(labels_file)
+    truth, evaluated = labelled_ground_truth(labels, ground, ignored)
+    row['metrics'] = {key: _nan_to_none(v) for key, v in
+                      truth_metrics(res.ground_mask, truth, evaluated).items()}
+    note = no_ground_note(row['input'], row['metrics']['tp'] + row['metrics']['fn'], ground)
+    if note:
+        print(f'gp-ground-seg eval: note: {note}', file=sys.stderr)
+
+
+def cmd_eval(args) -> int:
     if args.repeat < 1:
         raise CliError('--repeat must be at least 1')
-    ground, ignored = label_classes(args)
+    classes = label_classes(args)
     params = load_segmenter_params(args.params)
     labels_files = args.labels or []
     frame_count = _point_file_count(args.files)
@@ -194,48 +165,31 @@ def cmd_eval(args) -> int:
     segmenter = GroundSegmenter(params)
     warm_up(lambda text: print(f'gp-ground-seg eval: note: {text}', file=sys.stderr), segmenter)
     frames = []
-    k = 0
-    for name, msg in _eval_frames(args.files, args.topic):
-        runs = []
-        for _ in range(args.repeat):
-            runs.append(process_cloud(msg, segmenter))
-        out = runs[0]  # labels of the first run: the same warm-start history as the node
-        res = out.result
-        timings = {stage: float(np.median([frame_timings(r)[stage] for r in runs]))
-                   for stage in frame_timings(out)}
-        n_valid = int(np.count_nonzero(res.valid_mask))
-        if n_valid == 0:
-            raise CliError(f'{name}: no valid point ({int(res.valid_mask.size)} points, all '
-                           f'NaN/Inf or (0, 0, 0)): nothing to evaluate')
-        n_ground = int(np.count_nonzero(res.ground_mask))
-        row = {'input': name, 'points': int(res.valid_mask.size), 'valid': n_valid,
-               'ground': n_ground, 'ground_share': n_ground / n_valid if n_valid else None,
-               'hyperparameters': dict(zip(('sigma_f', 'gain', 'sigma_n'),
-                                           (float(v) for v in res.hyperparameters))),
-               'timings_ms': timings, 'repeat': args.repeat}
+    for k, (name, msg) in enumerate(_eval_frames(args.files, args.topic)):
+        if labels_files and k >= len(labels_files):
+            raise CliError(f'{len(labels_files)} label file(s) for more frames; give one '
+                           f'--labels file per frame')
+        if args.cold and k:
+            segmenter = GroundSegmenter(params)
+        res, row = _segment_frame(name, msg, segmenter, args.repeat)
         if labels_files:
-            if k >= len(labels_files):
-                raise CliError(f'{len(labels_files)} label file(s) for more frames; give one '
-                               f'--labels file per frame')
-            labels = read_semantickitti_labels(labels_files[k], expected_points=row['points'])
-            row['labels'] = str(labels_files[k])
-            truth, evaluated = labelled_ground_truth(labels, ground, ignored)
-            row['metrics'] = {key: _nan_to_none(v) for key, v in
-                              truth_metrics(res.ground_mask, truth, evaluated).items()}
-            note = no_ground_note(name, row['metrics']['tp'] + row['metrics']['fn'], ground)
-            if note:
-                print(f'gp-ground-seg eval: note: {note}', file=sys.stderr)
+            _score_frame(row, res, labels_files[k], classes)
         frames.append(row)
         if not args.json:  # as it comes: a bad frame later does not lose this one
-            _print_eval_row(row, ground, args.repeat)
-        k += 1
-    if labels_files and len(labels_files) != k:
-        raise CliError(f'{len(labels_files)} label file(s) given for {k} frame(s)')
+            _print_eval_row(row, classes[0], args.repeat)
+    if labels_files and len(labels_files) != len(frames):
+        raise CliError(f'{len(labels_files)} label file(s) given for {len(frames)} frame(s)')
+    pooled = pooled_metrics([row['metrics'] for row in frames]) if labels_files else None
+    if pooled is not None:
+        pooled = {key: _nan_to_none(v) for key, v in pooled.items()}
     if args.json:
-        print(json.dumps({'frames': frames, 'params_file': args.params,
-                          'vegetation_is_ground': args.vegetation_ground,
-                          'dataset': args.dataset, 'ground_classes': list(ground),
-                          'ignored_classes': list(ignored)}, indent=2))
+        print(json.dumps({'frames': frames, 'pooled': pooled, 'params_file': args.params,
+                          'cold': args.cold, 'protocol': args.protocol, 'dataset': args.dataset,
+                          'ground_classes': list(classes[0]),
+                          'ignored_classes': list(classes[1])}, indent=2))
+    elif pooled is not None and len(frames) > 1:
+        print(f'pooled over {len(frames)} frames (counts summed): {_metrics_text(pooled)}; '
+              f'protocol {args.protocol})')
     return 0
 
 
@@ -244,7 +198,6 @@ def cmd_eval(args) -> int:
 # ---------------------------------------------------------------------------------------------
 
 def cmd_replay(args) -> int:
-    from .bag import replay
     inputs, out = args.inputs[:-1], args.inputs[-1]
     if not inputs:
         raise CliError('give an input (bag or point files) and an output bag directory')
@@ -265,8 +218,6 @@ def cmd_replay(args) -> int:
 # ---------------------------------------------------------------------------------------------
 
 def cmd_plot(args) -> int:
-    from .bag import load_segmenter_params, read_frame
-    from .plot import plot_frame
     out = Path(args.out)
     if (out.exists() or out.is_symlink()) and not args.force:
         raise CliError(f'{out} exists; pass --force to overwrite it')
@@ -275,7 +226,6 @@ def cmd_plot(args) -> int:
     labels = None
     classes = label_classes(args)
     if args.labels:
-        from .io import read_semantickitti_labels
         labels = read_semantickitti_labels(args.labels,
                                            expected_points=int(msg.height) * int(msg.width))
     info = plot_frame(msg, out, params=params, segment=args.segment, labels=labels, title=name,
@@ -294,7 +244,6 @@ def cmd_plot(args) -> int:
 # ---------------------------------------------------------------------------------------------
 
 def cmd_make_sample(args) -> int:
-    from .bag import write_sample_bag
     digest = write_sample_bag(args.source, args.out, frames=args.frames, topic=args.topic)
     print(f'wrote {args.out} ({args.frames} frames of {args.topic}); mcap sha256 {digest}')
     return 0
@@ -311,14 +260,6 @@ class _Parser(argparse.ArgumentParser):
         self.exit(EXIT_ERROR, f'{self.prog}: error: {" ".join(message.split())}\n')
 
 
-def add_frame_id_option(parser) -> None:
-    """--frame-id: the header.frame_id given to clouds made from .bin/.pcd files."""
-    from .bag import SYNTHETIC_FRAME_ID
-    parser.add_argument('--frame-id', default=SYNTHETIC_FRAME_ID,
-                        help='header.frame_id of clouds made from .bin/.pcd files (default '
-                        f'{SYNTHETIC_FRAME_ID})')
-
-
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog='gp-ground-seg', description='Offline tools for the GP ground '
                      'segmenter: evaluate, replay bags, plot a frame.')
@@ -327,8 +268,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser('eval', help='segment point files / bag frames and print metrics',
                        description='Segment each input (KITTI .bin, .pcd, BAG:INDEX or a whole '
                        'bag) with one segmenter (theta warm-starts frame to frame, as in the '
-                       'node) and print ground precision/recall/F1 (with --labels) and ms per '
-                       'stage.')
+                       'node; --cold: a fresh one per frame) and print ms per stage and, with '
+                       '--labels, ground precision/recall/F1/IoU under --protocol per frame and '
+                       'pooled over the frames (TP/FP/FN summed).')
     p.add_argument('files', nargs='+', metavar='FILE', help='.bin, .pcd, BAG:INDEX or BAG')
     p.add_argument('--labels', nargs='+', metavar='FILE.label',
                    help='.label file(s) (uint32 per point, class in the low 16 bits), one per '
@@ -338,12 +280,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--topic', default=None, help='PointCloud2 topic for bag inputs '
                    '(default /velodyne_points)')
     p.add_argument('--json', action='store_true', help='print JSON instead of text')
+    p.add_argument('--cold', action='store_true',
+                   help='a fresh segmenter per frame (no theta warm start; the cold rows of '
+                   'benchmarks/bench_quality.py)')
     p.add_argument('--repeat', type=int, default=1, metavar='K',
                    help='segment each frame K times and report the median ms (labels/metrics '
                    'are those of the first run)')
-    p.add_argument('--vegetation-ground', action='store_true',
-                   help='count SemanticKITTI class 70 vegetation as ground (a Patchwork '
-                   'variant); default: non-ground')
     p.set_defaults(func=cmd_eval)
 
     p = sub.add_parser('replay', help='bag in -> ground/obstacles/surface/diagnostics bag out',
@@ -380,8 +322,6 @@ def build_parser() -> argparse.ArgumentParser:
     add_label_class_arguments(p)
     p.add_argument('--params', metavar='YAML', help='node parameter file (config/params.yaml)')
     p.add_argument('--topic', default=None, help='PointCloud2 topic for a bag FRAME')
-    p.add_argument('--vegetation-ground', action='store_true',
-                   help='count class 70 vegetation as ground for the error colouring')
     p.add_argument('--out', required=True, metavar='FIG.png')
     p.add_argument('--force', action='store_true', help='overwrite FIG.png if it exists')
     p.set_defaults(func=cmd_plot)
@@ -393,11 +333,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--topic', default='/velodyne_points')
     p.set_defaults(func=cmd_make_sample)
 
-    from . import batch, tune  # their own modules; optional Dask/Optuna load only when run
     batch.add_parser(sub)
     tune.add_parser(sub)
-    from .play import register as register_live_tools
-    register_live_tools(sub)  # play, hz (tools/play.py)
+    play.register(sub)  # play, hz
     return parser
 
 
@@ -417,8 +355,8 @@ def main(argv=None) -> int:
     except BrokenPipeError:  # stdout closed early (e.g. '| head'): the work itself is done
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no 2nd error at exit
         return 0
-    except _expected_errors() as err:
-        print(f'{prog}: error: {_one_line(err)}', file=sys.stderr)
+    except EXPECTED_ERRORS as err:
+        print(f'{prog}: error: {one_line(err)}', file=sys.stderr)
         return EXIT_ERROR
 
 

@@ -16,6 +16,7 @@ picklable callable that the task calls with a small dict.
 from __future__ import annotations
 
 import functools
+import logging
 import os
 import resource
 import time
@@ -23,7 +24,7 @@ import uuid
 from pathlib import Path
 from typing import Callable, Optional, Sequence
 
-from .cli import CliError
+from .errors import CliError
 
 DASK_MISSING = ("--jobs/--scheduler need Dask distributed, which is not installed: pip install "
                 "'gp_ground_segmentation[scale]' (or: pip install 'dask[distributed]')")
@@ -205,8 +206,6 @@ def open_engine(jobs: Optional[int] = None, scheduler: Optional[str] = None):
                           time.perf_counter() - t0)
     if jobs < 1:
         raise CliError('--jobs must be at least 1')
-    import logging
-
     import dask
     # One thread per worker process: a task is one sequential replay/trial, and the segmenter
     # caps its BLAS threads itself; N processes then use N cores. Dask's default

@@ -1,26 +1,35 @@
 # SPDX-License-Identifier: Apache-2.0
 """Ground-segmentation metrics against SemanticKITTI or RELLIS-3D labels or synthetic truth.
 
-Protocol for SemanticKITTI (follows the Patchwork / Patchwork++ evaluation):
+Two things decide what is scored: the *ontology* of the labels (which class ids are ground,
+which are left out) and the *protocol* (what happens to vegetation, the one choice that moves
+F1 by several points between published tables; ../shared/data/README.md section 7).
 
-* ground classes: 40 road, 44 parking, 48 sidewalk, 49 other-ground, 60 lane-marking, 72 terrain;
-* ignored: 0 unlabeled and 1 outlier are left out of every count;
-* everything else is non-ground. **Vegetation (70) counts as non-ground by default**: bushes and
-  hedges stand well above the terrain and a segmenter that calls them ground hides obstacles.
-  Patchwork reports variants that count 70 as ground; ``vegetation_is_ground=True`` reproduces
-  them.
+Ontologies (:data:`ONTOLOGIES`, by the name ``--dataset`` takes):
 
-"Positive" means *ground*: precision = TP / (TP + FP) is the share of points called ground that are
-ground, recall = TP / (TP + FN) the share of true ground that was found.
+* ``semantickitti``: ground 40 road, 44 parking, 48 sidewalk, 49 other-ground, 60 lane-marking,
+  72 terrain; 0 unlabeled and 1 outlier left out; vegetation 70;
+* ``rellis3d``: ground 1 dirt, 3 grass, 10 asphalt, 23 concrete, 31 puddle, 33 mud; 0 void left
+  out (it also holds every (0, 0, 0) no-return of the organised Ouster cloud); vegetation 19
+  bush (4 tree is not vegetation here: a trunk is an obstacle under every protocol).
 
-RELLIS-3D (``ontology=RELLIS_3D``) has its own class ids: ground = 1 dirt, 3 grass, 10 asphalt,
-23 concrete, 31 puddle, 33 mud; 0 void is ignored (it also holds every (0, 0, 0) no-return of
-the organised Ouster cloud); everything else (trees, bushes, fences, people, ...) is non-ground.
+Everything else is non-ground. Protocols (:data:`PROTOCOLS`, by the name ``--protocol`` takes):
+
+* ``vegetation-nonground`` (the default, :data:`DEFAULT_PROTOCOL`): vegetation is non-ground,
+  the strictest reading; a segmenter that calls a hedge ground hides an obstacle;
+* ``patchworkpp``: vegetation is not scored at all (neither ground nor non-ground), as in
+  Patchwork++'s paper and GroundGrid's evaluation;
+* ``vegetation-ground``: vegetation counts as ground (a variant some Patchwork tables use).
+
+"Positive" means *ground*: precision = TP / (TP + FP) is the share of points called ground that
+are ground, recall = TP / (TP + FN) the share of true ground found, and GroundGrid's ground IoU
+(``iou``) = TP / (TP + FP + FN). Several frames are pooled by summing their counts
+(:func:`pooled_metrics`), never by averaging their F1.
 """
 
 from __future__ import annotations
 
-from typing import NamedTuple, Optional
+from typing import NamedTuple
 
 import numpy as np
 
@@ -30,19 +39,46 @@ VEGETATION_CLASS = 70
 
 
 class LabelOntology(NamedTuple):
-    """Which semantic classes of a labelled data set are ground and which are left out."""
+    """Which semantic classes of a labelled data set are ground, left out and vegetation."""
 
-    name: str
+    name: str  # as people write it, e.g. 'SemanticKITTI'
+    key: str  # the --dataset value, e.g. 'semantickitti'
     ground: tuple
     ignored: tuple
-    vegetation: Optional[int] = None  # the class ``vegetation_is_ground`` adds, if any
+    vegetation: tuple  # the classes a protocol treats apart
 
 
-SEMANTIC_KITTI = LabelOntology('SemanticKITTI', GROUND_CLASSES, IGNORED_CLASSES, VEGETATION_CLASS)
-RELLIS_3D = LabelOntology('RELLIS-3D', (1, 3, 10, 23, 31, 33), (0,))
-# name -> (ground classes, ignored classes), for tools that take the two lists (tools.tune)
-DATASET_CLASSES = {'semantickitti': (SEMANTIC_KITTI.ground, SEMANTIC_KITTI.ignored),
-                   'rellis3d': (RELLIS_3D.ground, RELLIS_3D.ignored)}
+SEMANTIC_KITTI = LabelOntology('SemanticKITTI', 'semantickitti', GROUND_CLASSES,
+                               IGNORED_CLASSES, (VEGETATION_CLASS,))
+RELLIS_3D = LabelOntology('RELLIS-3D', 'rellis3d', (1, 3, 10, 23, 31, 33), (0,), (19,))
+ONTOLOGIES = {o.key: o for o in (SEMANTIC_KITTI, RELLIS_3D)}
+
+
+class ScoringProtocol(NamedTuple):
+    """What a scoring protocol does with an ontology's vegetation classes (module docstring)."""
+
+    name: str  # the --protocol value
+    vegetation: str  # 'non-ground', 'unscored' or 'ground'
+    summary: str  # one line for --help and the benchmark tables
+
+    def classes(self, ontology: LabelOntology) -> tuple[tuple, tuple]:
+        """(ground classes, left-out classes) of ``ontology`` under this protocol."""
+        ground, ignored = tuple(ontology.ground), tuple(ontology.ignored)
+        if self.vegetation == 'ground':
+            ground = tuple(sorted(set(ground) | set(ontology.vegetation)))
+        elif self.vegetation == 'unscored':
+            ignored = tuple(sorted(set(ignored) | set(ontology.vegetation)))
+        return ground, ignored
+
+
+VEGETATION_NONGROUND = ScoringProtocol('vegetation-nonground', 'non-ground',
+                                       'vegetation counts as non-ground')
+PATCHWORKPP = ScoringProtocol('patchworkpp', 'unscored',
+                              "vegetation is not scored (Patchwork++'s paper, GroundGrid)")
+VEGETATION_GROUND = ScoringProtocol('vegetation-ground', 'ground',
+                                    'vegetation counts as ground (a Patchwork variant)')
+PROTOCOLS = {p.name: p for p in (VEGETATION_NONGROUND, PATCHWORKPP, VEGETATION_GROUND)}
+DEFAULT_PROTOCOL = VEGETATION_NONGROUND
 
 
 def semantic_classes(labels: np.ndarray) -> np.ndarray:
@@ -50,14 +86,12 @@ def semantic_classes(labels: np.ndarray) -> np.ndarray:
     return np.asarray(labels).astype(np.uint32, copy=False) & 0xFFFF
 
 
-def ground_truth_from_labels(semantic_labels: np.ndarray, vegetation_is_ground: bool = False,
-                             ontology: LabelOntology = SEMANTIC_KITTI
+def ground_truth_from_labels(semantic_labels: np.ndarray,
+                             ontology: LabelOntology = SEMANTIC_KITTI,
+                             protocol: ScoringProtocol = DEFAULT_PROTOCOL
                              ) -> tuple[np.ndarray, np.ndarray]:
     """(truth_ground, evaluated) boolean masks from raw .label values or semantic classes."""
-    if vegetation_is_ground and ontology.vegetation is None:
-        raise ValueError(f'vegetation_is_ground: {ontology.name} labels have no such variant')
-    ground_classes = ontology.ground + ((ontology.vegetation,) if vegetation_is_ground else ())
-    return labelled_ground_truth(semantic_labels, ground_classes, ontology.ignored)
+    return labelled_ground_truth(semantic_labels, *protocol.classes(ontology))
 
 
 def labelled_ground_truth(labels: np.ndarray, ground_classes, ignored_classes
@@ -69,7 +103,7 @@ def labelled_ground_truth(labels: np.ndarray, ground_classes, ignored_classes
 
 def truth_metrics(pred_ground_mask: np.ndarray, truth_ground_mask: np.ndarray,
                   evaluated_mask: np.ndarray | None = None) -> dict:
-    """Precision, recall, F1 of *ground* for a predicted vs a true boolean mask (same length).
+    """Precision, recall, F1, IoU of *ground* for a predicted vs a true mask (same length).
 
     ``evaluated_mask`` (optional) selects the points that count; the rest are ignored. Ratios whose
     denominator is zero are NaN (e.g. precision when nothing was called ground), never a fake
@@ -92,7 +126,8 @@ def truth_metrics(pred_ground_mask: np.ndarray, truth_ground_mask: np.ndarray,
 
 
 def metrics_from_counts(tp: int, fp: int, fn: int, tn: int = 0) -> dict:
-    """Precision, recall and F1 of *ground* from the counts (module docstring), with the counts.
+    """Precision, recall, F1 and IoU of *ground* from the counts (module docstring), with the
+    counts.
 
     A ratio whose denominator is zero is NaN; F1 is 0 when there was ground or a ground call
     and not one hit, NaN when there was neither.
@@ -105,8 +140,9 @@ def metrics_from_counts(tp: int, fp: int, fn: int, tn: int = 0) -> dict:
         f1 = 0.0  # there was ground or a ground call and not one hit
     else:
         f1 = float('nan')
-    return {'precision': precision, 'recall': recall, 'f1': f1, 'tp': tp, 'fp': fp, 'fn': fn,
-            'tn': tn}
+    iou = tp / (tp + fp + fn) if tp + fp + fn else float('nan')
+    return {'precision': precision, 'recall': recall, 'f1': f1, 'iou': iou, 'tp': tp, 'fp': fp,
+            'fn': fn, 'tn': tn}
 
 
 def pooled_metrics(counts) -> dict | None:
@@ -119,18 +155,18 @@ def pooled_metrics(counts) -> dict | None:
                                  for k in ('tp', 'fp', 'fn', 'tn')))
 
 
-def ground_metrics(pred_ground_mask: np.ndarray, semantic_labels: np.ndarray,
-                   vegetation_is_ground: bool = False,
-                   ontology: LabelOntology = SEMANTIC_KITTI) -> dict:
-    """Ground precision/recall/F1 of a prediction against labels of ``ontology`` (module doc).
+def ground_metrics(pred_ground_mask: np.ndarray, semantic_labels: np.ndarray, *,
+                   ontology: LabelOntology = SEMANTIC_KITTI,
+                   protocol: ScoringProtocol = DEFAULT_PROTOCOL) -> dict:
+    """Ground precision/recall/F1/IoU of a prediction against labels of ``ontology`` scored
+    under ``protocol`` (module docstring).
 
     ``semantic_labels`` may be the raw uint32 .label values (instance in the high 16 bits) or the
-    semantic classes already. The ontology's ignored classes (SemanticKITTI: 0 unlabeled and
-    1 outlier) are not evaluated.
+    semantic classes already.
     """
     labels = np.asarray(semantic_labels).ravel()
     pred = np.asarray(pred_ground_mask, dtype=bool).ravel()
     if labels.shape != pred.shape:
         raise ValueError(f'the cloud has {pred.size} points but the labels have {labels.size}')
-    truth, evaluated = ground_truth_from_labels(labels, vegetation_is_ground, ontology)
+    truth, evaluated = ground_truth_from_labels(labels, ontology, protocol)
     return truth_metrics(pred, truth, evaluated)

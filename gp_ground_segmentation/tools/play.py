@@ -14,12 +14,26 @@ Both end on Ctrl-C (or SIGTERM) with exit status 0 and a closing summary line.
 
 from __future__ import annotations
 
+import argparse
 import importlib
+import math
 import sys
 import time
 from collections import deque
 
+import rclpy
+from builtin_interfaces.msg import Time
+from rclpy.duration import Duration
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.signals import SignalHandlerOptions
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import PointCloud2
+
 from ..ros.shutdown import QuietShutdown, shutdown_context
+from .bag import SYNTHETIC_PERIOD_NS, FrameSource, normalize_topic
+from .errors import CliError
+from .options import add_frame_id_option
 
 CLOCK_PERIOD_S = 0.025  # /clock at 40 Hz while waiting between frames (ros2 bag play's default)
 
@@ -28,15 +42,12 @@ def _ros_context():
     """A private rclpy context without rclpy's signal handlers: with ``QuietShutdown`` the first
     Ctrl-C or SIGTERM raises KeyboardInterrupt wherever the loop is (sleeping included) and
     further ones are ignored."""
-    import rclpy
-    from rclpy.signals import SignalHandlerOptions
     context = rclpy.Context()
     rclpy.init(args=[], context=context, signal_handler_options=SignalHandlerOptions.NO)
     return context
 
 
 def _to_time_msg(ns: int):
-    from builtin_interfaces.msg import Time
     return Time(sec=int(ns // 1_000_000_000), nanosec=int(ns % 1_000_000_000))
 
 
@@ -46,7 +57,6 @@ RELIABILITY_CHOICES = ('best_effort', 'reliable')
 def qos_profile(reliability: str, depth: int):
     """A keep-last QoS profile of ``depth`` with ``reliability`` (one of RELIABILITY_CHOICES,
     the spelling of ``ros2 topic --qos-reliability``), volatile, as the sensor-data profile."""
-    from rclpy.qos import QoSProfile, ReliabilityPolicy
     policy = {'best_effort': ReliabilityPolicy.BEST_EFFORT,
               'reliable': ReliabilityPolicy.RELIABLE}[reliability]
     return QoSProfile(depth=depth, reliability=policy)
@@ -62,7 +72,6 @@ def add_qos_options(parser, depth: int, what: str, reliable_note: str) -> None:
 
 
 def _positive_int(text: str) -> int:
-    import argparse
     try:
         value = int(text)
     except ValueError:
@@ -73,8 +82,6 @@ def _positive_int(text: str) -> int:
 
 
 def _positive_float(text: str) -> float:
-    import argparse
-    import math
     try:
         value = float(text)
     except ValueError:
@@ -93,14 +100,12 @@ class _Player:
 
     def __init__(self, node, topic: str, rate: float, restamp: bool, clock: bool,
                  reliability: str = 'best_effort', depth: int = 5):
-        from sensor_msgs.msg import PointCloud2
         self.node = node
         self.rate = rate
         self.restamp = restamp
         self.pub = node.create_publisher(PointCloud2, topic, qos_profile(reliability, depth))
         self.clock_pub = None
         if clock:
-            from rosgraph_msgs.msg import Clock
             self.clock_pub = node.create_publisher(Clock, '/clock', 10)
         self.offset_ns = 0  # added to bag time on every loop pass, so time never goes back
         self.published = 0
@@ -112,7 +117,6 @@ class _Player:
 
     def _publish_clock(self) -> None:
         if self.clock_pub is not None and self._anchor is not None:
-            from rosgraph_msgs.msg import Clock
             self.clock_pub.publish(Clock(clock=_to_time_msg(self.sim_time_ns())))
 
     def wait_until(self, bag_ns: int) -> None:
@@ -139,17 +143,12 @@ class _Player:
         """Reliable publishers (the frames' if so, /clock's always): wait (at most
         ``timeout_s`` each) until every subscriber has acknowledged every message, so that
         leaving right after the last one loses nothing."""
-        from rclpy.duration import Duration
-        from rclpy.qos import ReliabilityPolicy
         for pub in (self.pub, self.clock_pub):
             if pub is not None and pub.qos_profile.reliability == ReliabilityPolicy.RELIABLE:
                 pub.wait_for_all_acked(Duration(nanoseconds=int(timeout_s * 1e9)))
 
 
 def cmd_play(args) -> int:
-    from .bag import SYNTHETIC_PERIOD_NS, FrameSource, normalize_topic
-    from .cli import CliError
-
     if not args.rate > 0:
         raise CliError('--rate must be > 0')
     if not args.delay >= 0:
@@ -168,7 +167,6 @@ def cmd_play(args) -> int:
     t0 = time.monotonic()
     passes = 0
     try:
-        import rclpy
         node = rclpy.create_node('gp_ground_seg_play', context=context)
         player = _Player(node, source.topic, args.rate, args.restamp, args.clock,
                          args.qos_reliability, args.qos_depth)
@@ -260,9 +258,6 @@ class _TopicStats:
 
 
 def cmd_hz(args) -> int:
-    from .cli import CliError
-    from .bag import normalize_topic
-
     topics = [normalize_topic(t, strict=True) for t in args.topics]
     quiet = QuietShutdown()
     quiet.install()
@@ -271,8 +266,6 @@ def cmd_hz(args) -> int:
     stats = {t: _TopicStats(args.window) for t in topics}
     prog = 'gp-ground-seg hz'
     try:
-        import rclpy
-        from rclpy.executors import SingleThreadedExecutor
         node = rclpy.create_node('gp_ground_seg_hz', context=context)
         executor = SingleThreadedExecutor(context=context)
         executor.add_node(node)
@@ -320,7 +313,6 @@ def cmd_hz(args) -> int:
 
 def register(sub) -> None:
     """Add the ``play`` and ``hz`` subcommands to the gp-ground-seg subparsers ``sub``."""
-    from .cli import add_frame_id_option
     p = sub.add_parser('play', help='publish a bag\'s clouds live (like ros2 bag play)',
                        description='Publish the PointCloud2 frames of a bag (or of .bin/.pcd '
                        'files, 10 Hz) with their recorded timing and sensor-data QoS (best '

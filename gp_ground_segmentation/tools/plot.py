@@ -26,6 +26,13 @@ from pathlib import Path
 
 import numpy as np
 
+from ..core.grid import segment_of
+from ..core.params import SegmenterParams
+from ..core.segmenter import GroundSegmenter
+from ..ros.cloud import cloud_xyz, read_cloud
+from .evaluation import (DEFAULT_PROTOCOL, SEMANTIC_KITTI, labelled_ground_truth,
+                         truth_metrics)
+
 FIGURE_METADATA_KEY = 'gp_ground_segmentation'  # PNG text chunk with the figure's numbers
 
 COLOURS = {'ground': '#2ca02c', 'obstacle': '#d62728', 'candidate': '#1f77b4',
@@ -56,7 +63,6 @@ def segment_view(xyz: np.ndarray, result, segment: int, num_segments: int) -> di
     optionally cand_r, cand_z, critical_r, critical_z, lines [(r0, z0, r1, z1)], gp_r, gp_mean,
     gp_std, zhat_r, zhat.
     """
-    from ..core.grid import segment_of
     valid = result.valid_mask
     seg_all = np.full(len(xyz), -1)
     seg_all[valid] = segment_of(xyz[valid, 0], xyz[valid, 1], num_segments)
@@ -119,7 +125,6 @@ def _details_view(det, k: int) -> dict:
 
 def default_segment(num_segments: int) -> int:
     """The segment straight ahead of the sensor (+x axis)."""
-    from ..core.grid import segment_of
     return int(segment_of(np.array([1.0]), np.array([0.0]), num_segments)[0])
 
 
@@ -128,13 +133,9 @@ def plot_frame(msg, out_path, *, params=None, segment=None, labels=None, title='
     """Segment one PointCloud2 and save the three-panel figure to ``out_path`` (PNG, SVG, PDF).
 
     ``labels``: semantic classes per point (optional), scored with ``label_classes`` = (ground
-    classes, ignored classes), default SemanticKITTI's (evaluation.DATASET_CLASSES). Returns a
+    classes, ignored classes), default SemanticKITTI's under the default protocol. Returns a
     dict with the segment index, point count and, with labels, the metrics.
     """
-    from ..ros.cloud import cloud_xyz, read_cloud
-    from .evaluation import DATASET_CLASSES, labelled_ground_truth, truth_metrics
-    from ..core.params import SegmenterParams
-    from ..core.segmenter import GroundSegmenter
 
     plt = _pyplot()  # fail early, before the (slow) segmentation
     params = params or SegmenterParams()
@@ -157,7 +158,7 @@ def plot_frame(msg, out_path, *, params=None, segment=None, labels=None, title='
         1, 3, figsize=(25, 7.2), gridspec_kw={'width_ratios': [1.45, 1, 1.15]})
     _draw_side(ax_side, view, segment, m)
     _draw_surface(ax_surface, result.ground_surface, fig)
-    ground_classes, ignored_classes = label_classes or DATASET_CLASSES['semantickitti']
+    ground_classes, ignored_classes = label_classes or DEFAULT_PROTOCOL.classes(SEMANTIC_KITTI)
     truth = evaluated = None
     if labels is not None:
         truth, evaluated = labelled_ground_truth(labels, ground_classes, ignored_classes)

@@ -5,19 +5,20 @@
   ranges narrower than the validity ranges (the README table is generated from it). Values lie
   on a grid (``step``) so the written YAML holds round numbers.
 * Objective: pooled ground F1 (TP/FP/FN summed over the frames, then F1) against per-point
-  labels (SemanticKITTI-style ``.label``: uint32, class in the low 16 bits) with per-dataset
-  ground and ignored class lists (:data:`evaluation.DATASET_CLASSES`). Every frame is segmented
-  by a fresh segmenter (a cold start), so the score does not depend on the frame order.
+  labels (SemanticKITTI-style ``.label``: uint32, class in the low 16 bits) with the ground and
+  left-out classes of the labels' ontology under a scoring protocol (``--dataset``,
+  ``--protocol``; :mod:`.evaluation`). Every frame is segmented by a fresh segmenter (a cold
+  start), so the score does not depend on the frame order.
 * A trial whose values break a cross-field rule of ``SegmenterParams.validate()`` (e.g.
   ``sigma_n_init_m`` below ``sigma_n_min_m``) is pruned, not evaluated. The first trial of
   every study is the defaults, so a study's best is never worse than the defaults on its own
   training frames.
 * Generalisation: frames are grouped into scenes (consecutive frames of one drive are one
   scene; by default the file name without its trailing frame number, ``--scene-of`` changes
-  the rule). With two or more scenes, leave-one-scene-out: for each scene a study is run on the
-  others and its best set scored on the held-out scene; held-out counts are pooled over the
-  folds. That cross-validated F1 of the tuned sets is reported next to the defaults' F1 on the
-  same frames. The written parameters come from a final study on all frames.
+  the rule). With two or more scenes, leave-one-scene-out (:mod:`.crossval`): for each scene a
+  study is run on the others and its best set scored on the held-out scene; held-out counts
+  are pooled over the folds. That cross-validated F1 of the tuned sets is reported next to the
+  defaults' F1 on the same frames. The written parameters come from a final study on all frames.
 * Trials run ``engine.workers`` at a time on the same engine as ``batch`` (in-process or Dask).
 
 The output is a ROS 2 parameter file with the layout of config/params.yaml (``'/**':`` /
@@ -40,7 +41,15 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from .cli import CliError, add_label_class_arguments, label_classes, no_ground_note
+from ..core.params import SegmenterParams, describe_params
+from ..core.segmenter import GroundSegmenter
+from ..ros.config import render_param_overrides
+from .crossval import leave_one_group_out, pooled_f1
+from .engine import add_engine_arguments, open_engine
+from .errors import CliError
+from .evaluation import labelled_ground_truth, truth_metrics
+from .io import read_points_file, read_semantickitti_labels
+from .options import add_label_class_arguments, label_classes, no_ground_note
 
 OPTUNA_MISSING = ("tune needs Optuna, which is not installed: pip install "
                   "'gp_ground_segmentation[tune]' (or: pip install optuna)")
@@ -92,14 +101,12 @@ SEARCH_SPACE = (
 
 
 def search_space_defaults() -> dict:
-    from ..core.params import SegmenterParams
     defaults = SegmenterParams()
     return {r.name: getattr(defaults, r.name) for r in SEARCH_SPACE}
 
 
 def render_search_space_table() -> str:
     """Markdown table of the search space (for the README)."""
-    from ..core.params import describe_params
     specs = {row['name']: row for row in describe_params()}
     out = ['| parameter | default | search range (step) | validity range | why this range |',
            '|---|---|---|---|---|']
@@ -126,7 +133,6 @@ class LabelledFrame:
 
 
 def _xyz(points_path: str) -> np.ndarray:
-    from .io import read_points_file
     arr = read_points_file(points_path)
     return np.stack([np.asarray(arr[c], dtype=np.float32) for c in ('x', 'y', 'z')], axis=1)
 
@@ -135,8 +141,6 @@ def _xyz(points_path: str) -> np.ndarray:
 def load_frame(frame: LabelledFrame) -> tuple:
     """(xyz, truth ground mask, evaluated mask) of a frame; cached per process, so each worker
     reads a frame once however many trials it evaluates."""
-    from .evaluation import labelled_ground_truth
-    from .io import read_semantickitti_labels
     xyz = _xyz(frame.points)
     labels = read_semantickitti_labels(frame.labels, expected_points=len(xyz))
     truth, evaluated = labelled_ground_truth(labels, frame.ground_classes, frame.ignored_classes)
@@ -145,9 +149,6 @@ def load_frame(frame: LabelledFrame) -> tuple:
 
 def evaluate(values: dict, frames: Sequence[LabelledFrame]) -> list:
     """Per-frame confusion counts {tp, fp, fn, tn} of the defaults with ``values`` applied."""
-    from ..core.params import SegmenterParams
-    from ..core.segmenter import GroundSegmenter
-    from .evaluation import truth_metrics
     params = SegmenterParams().replace(**values)
     counts = []
     for frame in frames:
@@ -156,13 +157,6 @@ def evaluate(values: dict, frames: Sequence[LabelledFrame]) -> list:
         m = truth_metrics(ground, truth, evaluated)
         counts.append({k: m[k] for k in ('tp', 'fp', 'fn', 'tn')})
     return counts
-
-
-def pooled_f1(counts: Sequence[dict]) -> float:
-    """F1 of the summed counts of several frames (``evaluation.pooled_metrics``); NaN if none."""
-    from .evaluation import pooled_metrics
-    pooled = pooled_metrics(counts)
-    return pooled['f1'] if pooled else float('nan')
 
 
 # ---------------------------------------------------------------------------------------------
@@ -193,7 +187,6 @@ def run_study(engine, frames: Sequence[LabelledFrame], trials: int, seed: int,
     """Maximise pooled ground F1 on ``frames`` with ``trials`` trials (TPE, seeded), evaluating
     ``engine.workers`` trials at a time. ``first_trials`` (default: the defaults) are evaluated
     before the sampler's own."""
-    from ..core.params import SegmenterParams
     optuna = _import_optuna()
     from optuna.trial import TrialState
     study = optuna.create_study(direction='maximize',
@@ -276,28 +269,32 @@ def tune(frames: Sequence[LabelledFrame], engine, trials: int, seed: int = 0,
         scenes[f.scene] = scenes.get(f.scene, 0) + 1
     default_counts = engine.submit(evaluate, {}, tuple(frames)).result()
     by_frame = dict(zip(frames, default_counts))
-    folds, held_tuned, held_defaults = [], [], []
-    if len(scenes) >= 2:
-        for k, scene in enumerate(scenes):
-            train = [f for f in frames if f.scene != scene]
-            test = [f for f in frames if f.scene == scene]
-            study = run_study(engine, train, trials, seed + 1 + k)
-            counts = engine.submit(evaluate, study.best_values, tuple(test)).result()
-            base = [by_frame[f] for f in test]
-            held_tuned += counts
-            held_defaults += base
-            folds.append({'held_out': scene, 'frames': len(test), 'train_f1': study.best_f1,
-                          'test_f1_tuned': pooled_f1(counts), 'test_f1_defaults': pooled_f1(base),
-                          'changed': changed_values(study.best_values)})
-            log(f'fold {k + 1}/{len(scenes)} (held out {scene}): test F1 tuned '
-                f'{pooled_f1(counts):.4f}, defaults {pooled_f1(base):.4f}')
+
+    def study_without(fold):
+        return run_study(engine, fold.train, trials, seed + 1 + fold.index)
+
+    def held_out_counts(study, test):
+        return engine.submit(evaluate, study.best_values, tuple(test)).result()
+
+    cv = leave_one_group_out(frames, lambda f: f.scene, study_without, held_out_counts)
+    folds = []
+    for k, fold in enumerate(cv.folds):
+        base = [by_frame[f] for f in frames if f.scene == fold.held_out]
+        folds.append({'held_out': fold.held_out, 'frames': len(base),
+                      'train_f1': fold.choice.best_f1,
+                      'test_f1_tuned': pooled_f1(fold.test_counts),
+                      'test_f1_defaults': pooled_f1(base),
+                      'changed': changed_values(fold.choice.best_values)})
+        log(f'fold {k + 1}/{len(scenes)} (held out {fold.held_out}): test F1 tuned '
+            f'{pooled_f1(fold.test_counts):.4f}, defaults {pooled_f1(base):.4f}')
     final = run_study(engine, frames, trials, seed)
     log(f'final study on all {len(frames)} frames: F1 {final.best_f1:.4f} (defaults '
         f'{final.defaults_f1:.4f}); {final.pruned} pruned, {final.failed} failed')
+    held_defaults = [by_frame[f] for fold in cv.folds for f in frames if f.scene == fold.held_out]
     return TuneReport(frames, scenes, trials, seed, engine.description, final,
                       changed_values(final.best_values), final.best_f1,
                       pooled_f1(default_counts),
-                      pooled_f1(held_tuned) if folds else None,
+                      cv.pooled['f1'] if folds else None,
                       pooled_f1(held_defaults) if folds else None, folds)
 
 
@@ -307,7 +304,6 @@ def _fmt(value: Optional[float]) -> str:
 
 def params_yaml(report: TuneReport, dataset_text: str) -> str:
     """The parameter file: node layout, only the changed keys, a header with data and scores."""
-    from ..ros.config import render_param_overrides
     now = datetime.datetime.now(datetime.timezone.utc).strftime('%Y-%m-%d %H:%M UTC')
     scenes = ', '.join(f'{s} ({n} frame(s))' for s, n in report.scenes.items())
     cv = (f'leave-one-scene-out CV ground F1 (pooled over held-out scenes): tuned '
@@ -365,7 +361,6 @@ def labelled_frames(paths: Sequence[str], labels_dir: Optional[str], ground: tup
 
 def add_parser(sub) -> None:
     """Register ``gp-ground-seg tune``."""
-    from .engine import add_engine_arguments
     p = sub.add_parser('tune', help='search parameters on labelled scans, write params.yaml',
                        description='Optuna search of the segmenter parameters listed in the '
                        'README ("Many bags and tuning: batch and tune") for the best pooled '
@@ -390,9 +385,6 @@ def add_parser(sub) -> None:
 
 
 def cmd_tune(args) -> int:
-    from .engine import open_engine
-    from .evaluation import labelled_ground_truth
-    from .io import read_semantickitti_labels
     ground, ignored = label_classes(args)
     out = Path(args.out)
     if out.is_dir():
@@ -416,7 +408,8 @@ def cmd_tune(args) -> int:
         engine.check_shared([f.points for f in frames] + [f.labels for f in frames])
         report = tune(frames, engine, args.trials, args.seed,
                       log=lambda text: print(f'gp-ground-seg tune: {text}', file=sys.stderr))
-    dataset = (f'{args.dataset}; ground classes {",".join(map(str, ground))}; ignored '
+    dataset = (f'{args.dataset}, protocol {args.protocol}; ground classes '
+               f'{",".join(map(str, ground))}; ignored '
                f'{",".join(map(str, ignored))}')
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(params_yaml(report, dataset))

@@ -1,0 +1,72 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Command-line options that several gp-ground-seg subcommands share, and what they mean.
+
+* which labels are ground (``--dataset``, ``--protocol``, ``--ground-classes``,
+  ``--ignore-classes``; eval, plot, tune), resolved by :func:`label_classes` with the ontologies
+  and protocols of :mod:`.evaluation`;
+* the frame id of clouds made from point files (``--frame-id``; replay, play).
+"""
+
+from __future__ import annotations
+
+from .bag import SYNTHETIC_FRAME_ID
+from .errors import CliError
+from .evaluation import DEFAULT_PROTOCOL, ONTOLOGIES, PROTOCOLS
+
+
+def add_label_class_arguments(parser) -> None:
+    """--dataset / --protocol (with its shorthand --vegetation-ground) / --ground-classes /
+    --ignore-classes: which label classes are ground and which are not scored."""
+    parser.add_argument('--dataset', choices=sorted(ONTOLOGIES), default='semantickitti',
+                        help='label ontology: its ground, left-out and vegetation classes '
+                        '(default semantickitti; rellis3d for RELLIS-3D .label files)')
+    group = parser.add_mutually_exclusive_group()
+    vegetation = ', '.join(f'{o.name} {",".join(map(str, o.vegetation))}'
+                           for o in ONTOLOGIES.values())
+    group.add_argument('--protocol', choices=list(PROTOCOLS), default=DEFAULT_PROTOCOL.name,
+                       help=f'scoring protocol: what is done with vegetation ({vegetation}): '
+                       + '; '.join(f'{p.name}: {p.summary}' for p in PROTOCOLS.values())
+                       + f' (default {DEFAULT_PROTOCOL.name})')
+    group.add_argument('--vegetation-ground', dest='protocol', action='store_const',
+                       const='vegetation-ground', help='the same as --protocol vegetation-ground')
+    parser.add_argument('--ground-classes', metavar='C,C,...',
+                        help='override the ground classes (the protocol\'s otherwise)')
+    parser.add_argument('--ignore-classes', metavar='C,C,...',
+                        help='override the classes left out of the score (the protocol\'s '
+                        'otherwise)')
+
+
+def label_classes(args) -> tuple[tuple, tuple]:
+    """(ground classes, classes left out) of :func:`add_label_class_arguments`' options."""
+    ground, ignored = PROTOCOLS[args.protocol].classes(ONTOLOGIES[args.dataset])
+    if args.ground_classes:
+        ground = class_list(args.ground_classes)
+    if args.ignore_classes:
+        ignored = class_list(args.ignore_classes)
+    return tuple(ground), tuple(ignored)
+
+
+def class_list(text: str) -> tuple:
+    """'40,44, 48' -> (40, 44, 48); CliError for anything but comma-separated integers."""
+    try:
+        return tuple(sorted({int(v) for v in text.split(',') if v.strip()}))
+    except ValueError:
+        raise CliError(f'class list {text!r}: expected comma-separated integers, e.g. '
+                       f'40,44,48') from None
+
+
+def no_ground_note(name: str, ground_points: int, ground: tuple):
+    """A one-line note when none of a frame's evaluated labels is a ground class
+    (``ground_points``: how many are, e.g. TP + FN of its metrics; labels of another data set's
+    ontology score 0 without it), else None."""
+    if ground_points:
+        return None
+    return (f'{name}: no labelled point is in the ground classes {",".join(map(str, ground))}; '
+            'labels of another data set? (--dataset rellis3d, --ground-classes)')
+
+
+def add_frame_id_option(parser) -> None:
+    """--frame-id: the header.frame_id given to clouds made from .bin/.pcd files."""
+    parser.add_argument('--frame-id', default=SYNTHETIC_FRAME_ID,
+                        help='header.frame_id of clouds made from .bin/.pcd files (default '
+                        f'{SYNTHETIC_FRAME_ID})')

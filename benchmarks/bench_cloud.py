@@ -21,9 +21,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from gp_ground_segmentation.ros.cloud import (  # noqa: E402
     cloud_xyz, make_cloud, read_cloud, subset_cloud)
 from gp_ground_segmentation.tools.io import lzf_decompress, read_points_file  # noqa: E402
+from scenes.real_data import DATA_DIR  # noqa: E402
 
-DEFAULT = (Path(__file__).resolve().parents[1].parent / 'shared' / 'data'
-           / 'kitti_unlabeled_patchworkpp_000000.bin')
+DEFAULT = DATA_DIR / 'kitti_unlabeled_patchworkpp_000000.bin'
 
 
 def median_ms(fn, repeats=20):

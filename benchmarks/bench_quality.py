@@ -1,42 +1,49 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Ground quality on every labelled scan and synthetic family: the evaluation deciding defaults.
+"""Ground quality on every labelled scan and synthetic family, under both scoring protocols.
 
 Usage::
 
-    python benchmarks/bench_quality.py [--quick] [--seeds N] [--no-write]
+    python benchmarks/bench_quality.py [--quick] [--real-only] [--seeds N] [--families a,b]
                                        [--methods gp,patchworkpp,patchwork,linefit]
-                                       [--variant NAME:key=value,key=value ...] [--ablation]
-                                       [--cv] [--timing-rounds N]
+                                       [--modes cold,streamed] [--variant NAME:key=value,...]
+                                       [--grid name=v1,v2,...] [--ablation] [--timing-rounds N]
+                                       [--no-write]
 
-Data (each absent file is skipped with a printed reason):
+Data (``common.labelled_groups`` and ``scenes.synthetic``; an absent file is skipped with a
+printed reason): every labelled real scan, grouped for cross-validation by sequence -- KITTI
+00 (frames 0-2, one scene), 02, 04, 05, 06, 08 (the spvnas scan) and 10 with SemanticKITTI
+labels, RELLIS-3D with its own -- the eight classic synthetic scenes (``classic``) and every
+randomised family of ``scenes.synthetic.FAMILY_NAMES`` with seeds 0..N-1 (3; ``--quick`` 1),
+each family its own group.
 
-* real: the spvnas SemanticKITTI scan, KITTI 00 frames 0-2 with SemanticKITTI labels (one scene,
-  streamed in order), the RELLIS-3D Ouster OS1-64 scan (its own ontology, organised with (0,0,0)
-  no-returns); see ../shared/data/README.md sections 1 and 6;
-* synthetic: the eight classic scenes of ``scenes.synthetic`` (seed 0, group ``classic``) and every
-  randomised family of ``scenes.synthetic.FAMILY_NAMES`` with seeds 0..N-1 (3, ``--quick`` 1).
+Methods, fed the same (N, 4) float32 frames: this project (``SegmenterParams()`` defaults or a
+variant; no mount height), Patchwork++, Patchwork and linefit with their documented defaults
+plus what their users set for a mount (``peer_settings``). Modes: ``cold`` = a fresh instance
+per frame; ``streamed`` = one instance over a group's frames in order.
 
-Methods, fed the same (N, 4) float32 frames and scored alike (``common.score``): this project
-(``SegmenterParams()`` defaults or a variant; no mount height), Patchwork++, Patchwork and
-linefit with their documented defaults plus what their users set for a mount (see
-``peer_settings``).
+Every mask is scored under both protocols of ``gp_ground_segmentation.tools.evaluation``
+(:data:`PROTOCOLS`): vegetation as non-ground (the default) and Patchwork++'s (vegetation not
+scored); precision, recall, F1 and GroundGrid's IoU_g = TP / (TP + FP + FN), per scan and pooled
+(TP/FP/FN summed, never a mean of F1). Held-out scores: the leave-one-group-out choice
+(``tools.crossval``) among the defaults and the variants asked for, per protocol; with no
+variant the defaults are the only candidate and the held-out score is theirs.
 
-Modes: ``cold`` = a fresh instance per frame; ``streamed`` = one instance over a data set's
-frames in order (a peer is rebuilt only when the mount it was configured for changes).
+``--quick`` (1 seed, cold only, 2 timing rounds) and ``--real-only`` (the labelled real scans
+only) are for iterating: they print and never write RESULTS.md, whose section is the full run's.
+Nothing is cached: every run segments every frame again.
 
-Library use (cross-validation of defaults)::
+Library use (tests, choosing defaults)::
 
-    from bench_quality import load_groups, evaluate, loso_cv
+    from bench_quality import load_groups, evaluate
     groups = load_groups(seeds=3)
     counts = evaluate(SegmenterParams(), groups[0].frames, mode='cold')   # [{tp, fp, fn, tn}]
-    table = loso_cv({'default': SegmenterParams(), 'L1.5': SegmenterParams(
-        max_length_factor=1.5)}, groups)
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import itertools
 import sys
 import time
 from pathlib import Path
@@ -48,12 +55,17 @@ import bench_peers  # noqa: E402
 import common  # noqa: E402
 
 from gp_ground_segmentation import SegmenterParams  # noqa: E402
+from gp_ground_segmentation.tools.crossval import (  # noqa: E402
+    best_candidate, leave_one_group_out, pooled_f1)
+from gp_ground_segmentation.tools.evaluation import (  # noqa: E402
+    DEFAULT_PROTOCOL, PATCHWORKPP, VEGETATION_NONGROUND)
 
 RESULTS = Path(__file__).resolve().parent / 'RESULTS.md'
 METHOD_KEYS = ('gp', 'patchworkpp', 'patchwork', 'linefit')
 MODES = ('cold', 'streamed')
+PROTOCOLS = (VEGETATION_NONGROUND, PATCHWORKPP)  # the two every table reports
 MODE_TEXT = {'cold': 'a fresh instance per frame',
-             'streamed': "one instance over a data set's frames in order; a synthetic family's "
+             'streamed': "one instance over a group's frames in order; a synthetic family's "
                          'seeds are different scenes played as one stream'}
 CLASSIC_SCENES = common.FLAT_SCENES + common.SLOPED_SCENES + common.MIXED_SCENES
 # Below this mount height (m) the peers get a short minimum range: their KITTI defaults (2.7 m)
@@ -63,36 +75,28 @@ LOW_MOUNT_MIN_RANGE_M = 0.3
 # linefit's own KITTI config (Kin-Zhang/linefit assets/config/kitti.toml) sets 1.78 m for the
 # 1.73 m KITTI mount; its documented default is kept for KITTI.
 LINEFIT_KITTI_HEIGHT_M = 1.78
+LABELS = {'gp': 'this project', 'patchworkpp': 'Patchwork++', 'patchwork': 'Patchwork',
+          'linefit': 'linefit'}
+DEFAULT_SEEDS = 3
 
 
 # ------------------------------------------------------------------------------------ data
 
-def load_groups(seeds: int = 3, families=None, real: bool = True, classic: bool = True) -> list:
-    """Every evaluation group as a ``common.Dataset``: one real scene or one synthetic family.
-
-    Real groups: ``kitti_spvnas``, ``kitti00_labeled`` (frames 0-2, one scene), ``rellis3d``;
-    synthetic: ``classic`` (the eight fixed scenes) and each family with ``seeds`` seeds.
-    """
-    groups = []
-    if real:
-        ds = common.load_labeled_kitti()
-        if ds is not None:
-            for frame in ds.frames:
-                frame.mount_height_m = common.KITTI_SENSOR_HEIGHT_M
-            ds.name = 'kitti_spvnas'
-            groups.append(ds)
-        for loader in (common.load_kitti00_labeled, common.load_rellis):
-            ds = loader()
-            if ds is not None:
-                groups.append(ds)
-    if classic:
-        ds = common.load_synthetic(CLASSIC_SCENES, 'classic')
-        if ds is not None:
-            for frame in ds.frames:
-                frame.mount_height_m = 1.73  # simulate_scan's default mount
-                frame.has_intensity = False  # made-up reflectance, as in load_family
-            ds.name = 'classic'
-            groups.append(ds)
+def load_groups(seeds: int = DEFAULT_SEEDS, families=None, real: bool = True,
+                synthetic: bool = True) -> list:
+    """Every evaluation group as a ``common.Dataset``: one real sequence (``kitti00`` ..
+    ``kitti10``, ``rellis3d``), the eight classic synthetic scenes (``classic``) or one
+    synthetic family with ``seeds`` seeds."""
+    groups = common.labelled_groups() if real else []
+    if not synthetic:
+        return groups
+    ds = common.load_synthetic(CLASSIC_SCENES, 'classic')
+    if ds is not None:
+        for frame in ds.frames:
+            frame.mount_height_m = 1.73  # simulate_scan's default mount
+            frame.has_intensity = False  # made-up reflectance, as in load_family
+        ds.name = 'classic'
+        groups.append(ds)
     try:
         from scenes.synthetic import FAMILY_NAMES
     except ImportError as exc:
@@ -107,6 +111,15 @@ def load_groups(seeds: int = 3, families=None, real: bool = True, classic: bool 
 
 def is_kitti(group) -> bool:
     return group.name.startswith('kitti')
+
+
+def category(group) -> str:
+    """'SemanticKITTI', 'RELLIS-3D', 'classic' or the synthetic family's group ('sloped', ..)."""
+    if is_kitti(group):
+        return 'SemanticKITTI'
+    if group.group == 'real':
+        return 'RELLIS-3D'
+    return group.group.replace('synthetic-', '')
 
 
 # ------------------------------------------------------------------------------------ methods
@@ -160,14 +173,14 @@ def make_method(key: str, frame, params: SegmenterParams | None = None):
         return Patchwork(height, min_range)
     if key == 'linefit':
         kitti = frame.mount_height_m == common.KITTI_SENSOR_HEIGHT_M and frame.name.startswith(
-            ('kitti', 'semantickitti'))
+            'kitti')
         return bench_peers.LinefitMethod(LINEFIT_KITTI_HEIGHT_M if kitti else height)
     raise ValueError(f'method: unknown {key!r}; choose from {", ".join(METHOD_KEYS)}')
 
 
-def run_frames(key: str, frames, mode: str = 'cold', params: SegmenterParams | None = None,
-               timings: list | None = None) -> list:
-    """Per-frame metrics (``common.score`` dicts) of one method over ``frames``.
+def run_masks(key: str, frames, mode: str = 'cold', params: SegmenterParams | None = None,
+              timings: list | None = None) -> list:
+    """The ground mask of every frame by one method.
 
     cold: a fresh instance per frame; streamed: one instance over the frames in order, rebuilt
     only when a peer's mount settings change. ``timings`` (optional) collects seconds per call.
@@ -185,52 +198,37 @@ def run_frames(key: str, frames, mode: str = 'cold', params: SegmenterParams | N
         mask, seconds = common.timed(method.run, frame)
         if timings is not None:
             timings.append(seconds)
-        out.append(common.score(mask, frame))
+        out.append(mask)
     return out
 
 
-def evaluate(params: SegmenterParams, frames, mode: str = 'cold') -> list:
+def scored(masks, frames) -> dict:
+    """{protocol name: per-frame metrics} of ``masks`` under each of :data:`PROTOCOLS`."""
+    return {p.name: [common.score(m, f, p) for m, f in zip(masks, frames)] for p in PROTOCOLS}
+
+
+def run_frames(key: str, frames, mode: str = 'cold', params: SegmenterParams | None = None,
+               protocol=DEFAULT_PROTOCOL) -> list:
+    """Per-frame metrics (``common.score`` dicts) of one method under ``protocol``."""
+    frames = list(frames)
+    return [common.score(m, f, protocol)
+            for m, f in zip(run_masks(key, frames, mode, params), frames)]
+
+
+def evaluate(params: SegmenterParams, frames, mode: str = 'cold',
+             protocol=DEFAULT_PROTOCOL) -> list:
     """Per-frame counts ``{'tp', 'fp', 'fn', 'tn'}`` of this project with ``params``.
 
     ``frames``: ``common.Frame`` objects with truth, in stream order for ``mode='streamed'``.
     """
     params = params.validate()
     return [{k: m[k] for k in ('tp', 'fp', 'fn', 'tn')}
-            for m in run_frames('gp', list(frames), mode, params)]
+            for m in run_frames('gp', frames, mode, params, protocol)]
 
 
-def f1_of(counts) -> float:
-    """Pooled F1 of a list of count dicts (sum TP/FP/FN)."""
-    pooled = common.pool(list(counts))
-    return pooled['f1'] if pooled else float('nan')
-
-
-def loso_cv(candidates: dict, groups=None, mode: str = 'cold') -> list:
-    """Leave-one-group-out choice of parameters: one row per held-out group.
-
-    For each group (a real scene -- KITTI 00 frames 0-2 are one -- or a synthetic family) the
-    candidate with the best score on the *other* groups is chosen; the row gives its F1 on the
-    held-out group. The score on the rest is the mean of the groups' pooled F1, so that every
-    scene or family weighs the same whatever its point count.
-    """
-    groups = groups if groups is not None else load_groups()
-    counts = {name: {g.name: evaluate(p, g.frames, mode) for g in groups}
-              for name, p in candidates.items()}
-    return loso_cv_from_counts(counts, groups)
-
-
-def loso_cv_from_counts(counts: dict, groups) -> list:
-    """``loso_cv`` on counts already computed: counts[candidate][group name] = per-frame list."""
-    f1 = {name: {g.name: f1_of(per[g.name]) for g in groups} for name, per in counts.items()}
-    rows = []
-    for held in groups:
-        rest = {name: float(np.nanmean([v for g, v in per.items() if g != held.name]))
-                for name, per in f1.items()}
-        chosen = max(rest, key=rest.get)
-        rows.append({'held_out': held.name, 'chosen': chosen, 'rest_score': rest[chosen],
-                     'held_out_f1': f1[chosen][held.name],
-                     'default_f1': f1.get('defaults', {}).get(held.name, float('nan'))})
-    return rows
+def pooled(metrics) -> dict | None:
+    """Pooled metrics of per-frame ones (TP/FP/FN summed); None if none."""
+    return common.pool(list(metrics))
 
 
 # ------------------------------------------------------------------------------------ variants
@@ -242,6 +240,24 @@ def parse_variant(text: str) -> tuple:
         raise ValueError(f'--variant {text!r}: expected NAME:key=value,key=value')
     values = common.parse_param_values([x for x in body.split(',') if x.strip()])
     return name.strip(), SegmenterParams(**values).validate()
+
+
+def grid_variants(items) -> dict:
+    """['a=1,2', 'b=x,y'] -> {'a=1, b=x': params, ...}: every combination (a joint grid) over
+    the defaults (none without items); ValueError naming a bad item."""
+    if not items:
+        return {}
+    axes = []
+    for item in items:
+        name, sep, values = item.partition('=')
+        if not sep or not values.strip():
+            raise ValueError(f'--grid {item!r}: expected name=v1,v2,...')
+        axes.append([f'{name.strip()}={v.strip()}' for v in values.split(',') if v.strip()])
+    out = {}
+    for combo in itertools.product(*axes):
+        params = SegmenterParams(**common.parse_param_values(list(combo))).validate()
+        out[', '.join(combo)] = params
+    return out
 
 
 def ablation_variants() -> dict:
@@ -302,8 +318,9 @@ def theta_stream_variants() -> dict:
 
 # ------------------------------------------------------------------------------------ running
 
-def run_all(groups, keys, modes, params=None) -> dict:
-    """results[mode][key][group name] = per-frame metrics; unavailable[key] = reason."""
+def run_all(groups, keys, modes, params=None) -> tuple:
+    """(results[mode][key][group name][protocol name] = per-frame metrics,
+    unavailable[key] = the reason a method could not run)."""
     results = {mode: {} for mode in modes}
     unavailable = {}
     for key in keys:
@@ -311,7 +328,7 @@ def run_all(groups, keys, modes, params=None) -> dict:
             per = {}
             for g in groups:
                 try:
-                    per[g.name] = run_frames(key, g.frames, mode, params)
+                    per[g.name] = scored(run_masks(key, g.frames, mode, params), g.frames)
                 except Exception as exc:  # noqa: BLE001 - report any peer failure verbatim
                     unavailable[key] = f'{type(exc).__name__}: {exc}'
                     break
@@ -322,6 +339,27 @@ def run_all(groups, keys, modes, params=None) -> dict:
     return results, unavailable
 
 
+def run_variants(groups, variants: dict, mode: str = 'cold') -> dict:
+    """{variant name: {group name: {protocol name: per-frame metrics}}} of this project."""
+    out = {}
+    for name, params in variants.items():
+        out[name] = {g.name: scored(run_masks('gp', g.frames, mode, params), g.frames)
+                     for g in groups}
+        print(f'variant {name} done', file=sys.stderr, flush=True)
+    return out
+
+
+def cross_validate(candidates: dict, groups, protocol) -> object:
+    """Leave-one-group-out choice among ``candidates`` ({name: {group: {protocol: metrics}}},
+    the defaults first): for each group the candidate with the best mean of the other groups'
+    pooled F1 under ``protocol``, scored on the held-out group (``tools.crossval``)."""
+    counts = {name: {g: per[g][protocol.name] for g in per} for name, per in candidates.items()}
+    return leave_one_group_out(
+        [g.name for g in groups], lambda name: name,
+        lambda fold: best_candidate(counts, fold.train),
+        lambda chosen, test: [c for g in test for c in counts[chosen][g]])
+
+
 def time_kitti(groups, keys, rounds: int) -> dict:
     """Seconds per frame of each method streamed over the ~124k-point KITTI scans.
 
@@ -329,7 +367,7 @@ def time_kitti(groups, keys, rounds: int) -> dict:
     so load from other jobs on this shared machine hits all alike.
     """
     frames = [f for g in groups if is_kitti(g) for f in g.frames]
-    if not frames:
+    if not frames or not rounds:
         return {}
     methods = {}
     for key in keys:
@@ -346,84 +384,132 @@ def time_kitti(groups, keys, rounds: int) -> dict:
                 seconds = common.timed(method.run, frame)[1]
                 if rnd:
                     times[key].append(seconds)
-    return {'times': times, 'frames': len(frames),
+    return {'times': times, 'frames': len(frames), 'rounds': rounds,
             'points': float(np.mean([len(f) for f in frames]))}
 
 
 # ------------------------------------------------------------------------------------ tables
 
-LABELS = {'gp': 'this project', 'patchworkpp': 'Patchwork++', 'patchwork': 'Patchwork',
-          'linefit': 'linefit'}
-
-
-def prf(m) -> str:
+def prf(m, digits: int = 3) -> str:
     if m is None:
         return '-'
-    return ' / '.join(common.fmt(m[k], 3) for k in ('precision', 'recall', 'f1'))
+    return ' / '.join(common.fmt(m[k], digits) for k in ('precision', 'recall', 'f1'))
 
 
-def obstacle_to_ground(metrics) -> float:
-    """Share of scored non-ground points called ground (false-positive rate), pooled."""
-    fp = sum(m['fp'] for m in metrics if m)
-    tn = sum(m['tn'] for m in metrics if m)
-    return fp / (fp + tn) if fp + tn else float('nan')
-
-
-def pooled_rows(groups, per_method, keys):
-    """Rows per group, then pooled rows of the SemanticKITTI scans and of group categories."""
-    aggregates = [('**SemanticKITTI, 4 scans pooled**', [g for g in groups if is_kitti(g)])]
-    for category in sorted({g.group for g in groups if g.group.startswith('synthetic')}):
-        members = [g for g in groups if g.group == category]
-        aggregates.append((f'**{category} pooled** ({", ".join(g.name for g in members)})',
-                           members))
-    rows = []
-    for name, members in [(g.name, [g]) for g in groups] + aggregates:
-        if not members:
-            continue
-        metrics = {k: [m for g in members for m in per_method[k][g.name]] for k in keys}
-        pooled = {k: common.pool(metrics[k]) for k in keys}
-        row = [name, str(sum(len(g.frames) for g in members))]
-        row += [prf(pooled[k]) for k in keys]
-        if 'gp' in keys and 'patchworkpp' in keys and pooled['gp'] and pooled['patchworkpp']:
-            row.append(f"{pooled['gp']['f1'] - pooled['patchworkpp']['f1']:+.3f}")
-        elif 'gp' in keys and 'patchworkpp' in keys:
-            row.append('-')
-        row += [common.fmt(100 * obstacle_to_ground(metrics[k]), 1) for k in keys
-                if k in ('gp', 'patchworkpp')]
-        rows.append(row)
+def row_sets(groups) -> list:
+    """(label, member groups) of every table row: each group, then the pooled rows (the KITTI
+    scans; each synthetic category with more than one family; all synthetic)."""
+    rows = [(g.name, [g]) for g in groups]
+    kitti = [g for g in groups if is_kitti(g)]
+    if len(kitti) > 1:
+        rows.insert(len(kitti), (f'**SemanticKITTI, {sum(len(g.frames) for g in kitti)} scans '
+                                 'pooled**', kitti))
+    synthetic = [g for g in groups if g.group != 'real']
+    for cat in dict.fromkeys(category(g) for g in synthetic):
+        members = [g for g in synthetic if category(g) == cat]
+        if len(members) > 1:
+            rows.append((f'**{cat} pooled** ({", ".join(g.name for g in members)})', members))
+    if len(synthetic) > 1:
+        rows.append((f'**all synthetic pooled** ({len(synthetic)} groups)', synthetic))
     return rows
 
 
-def losses_text(groups, per_method) -> str:
-    """One line: the groups where this project's pooled F1 is below Patchwork++'s."""
-    if 'gp' not in per_method or 'patchworkpp' not in per_method:
-        return ''
-    lost = []
-    for g in groups:
-        ours, ref = f1_of(per_method['gp'][g.name]), f1_of(per_method['patchworkpp'][g.name])
-        if ours < ref:
-            lost.append(f'{g.name} ({ours:.3f} vs {ref:.3f}, {ours - ref:+.4f})')
-    return ('Below Patchwork++ (pooled F1, ours vs theirs): ' + (', '.join(lost) or 'none')
-            + '.')
+def members_pooled(per_group: dict, members, protocol) -> dict | None:
+    """Pooled metrics of ``members``' frames in ``per_group[group][protocol]``."""
+    return pooled(m for g in members for m in per_group[g.name][protocol.name])
 
 
-def pooled_table(groups, per_method, keys) -> str:
-    headers = ['data set / family', 'frames'] + [f'{LABELS[k]} P / R / F1' for k in keys]
-    if 'gp' in keys and 'patchworkpp' in keys:
-        headers.append('F1 ours - Patchwork++')
-    headers += [f'{LABELS[k]} non-ground called ground %' for k in keys
-                if k in ('gp', 'patchworkpp')]
-    return common.markdown_table(headers, pooled_rows(groups, per_method, keys))
+def held_out_kitti(cv_by_protocol: dict, groups) -> dict:
+    """{protocol name: pooled held-out metrics of the KITTI folds}."""
+    kitti = {g.name for g in groups if is_kitti(g)}
+    return {name: pooled(c for fold in cv.folds if fold.held_out in kitti
+                         for c in fold.test_counts)
+            for name, cv in cv_by_protocol.items()}
 
 
-def per_frame_table(groups, per_method, keys) -> str:
-    headers = ['frame', 'points'] + [f'{LABELS[k]} P / R / F1' for k in keys]
+def both_protocols_table(groups, cold: dict, cv_by_protocol: dict, candidates: int) -> str:
+    """The compact table: ours vs Patchwork++ under both protocols, P/R/F1, F1 change, IoU_g;
+    with the held-out KITTI pooled row of the leave-one-group-out choice."""
+    ours, theirs = cold.get('gp'), cold.get('patchworkpp')
+    headers = ['group', 'frames']
+    for p in PROTOCOLS:
+        headers += [f'{p.name}: ours P / R / F1', 'Patchwork++ P / R / F1', 'F1 ours - PW++',
+                    'IoU_g ours / PW++']
+    held = held_out_kitti(cv_by_protocol, groups)
     rows = []
-    for g in groups:
-        for i, frame in enumerate(g.frames):
-            rows.append([frame.name, common.fmt(len(frame))]
-                        + [prf(per_method[k][g.name][i]) for k in keys])
+    for label, members in row_sets(groups):
+        row = [label, str(sum(len(g.frames) for g in members))]
+        for p in PROTOCOLS:
+            o = members_pooled(ours, members, p) if ours else None
+            t = members_pooled(theirs, members, p) if theirs else None
+            row += _comparison_cells(o, t)
+        rows.append(row)
+        if label.startswith('**SemanticKITTI') and held.get(PROTOCOLS[0].name):
+            plural = 's' if candidates > 1 else ''
+            row = [f'**SemanticKITTI held-out** (leave one sequence out, {candidates} '
+                   f'candidate{plural})', row[1]]
+            for p in PROTOCOLS:
+                t = members_pooled(theirs, members, p) if theirs else None
+                row += _comparison_cells(held[p.name], t)
+            rows.append(row)
     return common.markdown_table(headers, rows)
+
+
+def _comparison_cells(o, t) -> list:
+    delta = f"{o['f1'] - t['f1']:+.4f}" if o and t else '-'
+    iou = ' / '.join(common.fmt(m['iou'], 4) if m else '-' for m in (o, t))
+    return [prf(o, 4), prf(t, 4), delta, iou]
+
+
+def all_methods_table(groups, per_method: dict, keys) -> str:
+    """F1 of every method per row under both protocols ('vegetation-nonground / patchworkpp')."""
+    headers = ['group', 'frames'] + [f'{LABELS[k]} F1' for k in keys]
+    rows = []
+    for label, members in row_sets(groups):
+        row = [label, str(sum(len(g.frames) for g in members))]
+        for k in keys:
+            row.append(' / '.join(common.fmt((members_pooled(per_method[k], members, p)
+                                              or {'f1': None})['f1'], 3) for p in PROTOCOLS))
+        rows.append(row)
+    return common.markdown_table(headers, rows)
+
+
+def real_frames_table(groups, cold: dict) -> str:
+    """Per labelled real scan: ours vs Patchwork++ F1 and IoU_g under both protocols."""
+    headers = ['scan', 'points'] + [
+        f'{p.name}: ours F1 / IoU_g, Patchwork++ F1 / IoU_g' for p in PROTOCOLS]
+    rows = []
+    for g in (g for g in groups if g.group == 'real'):
+        for i, frame in enumerate(g.frames):
+            cells = []
+            for p in PROTOCOLS:
+                pair = [cold[k][g.name][p.name][i] if k in cold else None
+                        for k in ('gp', 'patchworkpp')]
+                cells.append(', '.join('-' if m is None else
+                                       f"{m['f1']:.4f} / {m['iou']:.4f}" for m in pair))
+            rows.append([frame.name, common.fmt(len(frame))] + cells)
+    return common.markdown_table(headers, rows)
+
+
+def losses_text(groups, cold: dict) -> str:
+    """The groups and synthetic frames where this project's F1 is below Patchwork++'s."""
+    if 'gp' not in cold or 'patchworkpp' not in cold:
+        return ''
+    lines = []
+    for p in PROTOCOLS:
+        lost_groups, lost_frames = [], []
+        for g in groups:
+            ours, ref = (pooled_f1(cold[k][g.name][p.name]) for k in ('gp', 'patchworkpp'))
+            if ours < ref:
+                lost_groups.append(f'{g.name} ({ours:.4f} vs {ref:.4f})')
+            for frame, o, t in zip(g.frames, cold['gp'][g.name][p.name],
+                                   cold['patchworkpp'][g.name][p.name]):
+                if g.group != 'real' and o['f1'] < t['f1']:
+                    lost_frames.append(f"{frame.name} ({o['f1']:.3f} vs {t['f1']:.3f})")
+        lines.append(f'- {p.name}: groups below Patchwork++ (pooled F1, ours vs theirs): '
+                     f'{", ".join(lost_groups) or "none"}; synthetic frames below it: '
+                     f'{", ".join(lost_frames) or "none"}.')
+    return '\n'.join(lines)
 
 
 def timing_table(timing, keys) -> str:
@@ -441,167 +527,200 @@ def timing_table(timing, keys) -> str:
                                  rows)
 
 
-def variant_table(groups, variant_results) -> str:
-    """Pooled F1 per group for each variant of this project (same run, cold)."""
+def variant_table(groups, variant_results: dict, protocol) -> str:
+    """Pooled F1 per group for each variant of this project (same run), change vs the first."""
     names = list(variant_results)
-    headers = ['data set / family'] + names
+    suffix = '' if protocol is DEFAULT_PROTOCOL else f' ({protocol.name})'
+    headers = ['data set / family' + suffix] + names
+
+    def f1(name, group):
+        return pooled_f1(variant_results[name][group][protocol.name])
+
     rows = []
-    base = variant_results[names[0]]
     for g in groups:
-        row = [g.name]
-        for name in names:
-            f1 = f1_of(variant_results[name][g.name])
-            delta = f1 - f1_of(base[g.name])
-            row.append(common.fmt(f1, 3) + ('' if name == names[0] else f' ({delta:+.3f})'))
-        rows.append(row)
-    macro = {n: float(np.nanmean([f1_of(r[g.name]) for g in groups]))
-             for n, r in variant_results.items()}
-    base_macro = macro[names[0]]
+        rows.append([g.name] + [common.fmt(f1(n, g.name), 3) + (
+            '' if n == names[0] else f' ({f1(n, g.name) - f1(names[0], g.name):+.3f})')
+            for n in names])
+    macro = {n: float(np.nanmean([f1(n, g.name) for g in groups])) for n in names}
+    base = macro[names[0]]
     rows.append(['**mean of groups**'] + [
-        common.fmt(macro[n], 3) + ('' if n == names[0] else f' ({macro[n] - base_macro:+.3f})')
+        common.fmt(macro[n], 3) + ('' if n == names[0] else f' ({macro[n] - base:+.3f})')
         for n in names])
     return common.markdown_table(headers, rows)
 
 
-def cv_table(rows) -> str:
-    return common.markdown_table(
-        ['held-out group', 'chosen on the rest', 'its mean F1 on the rest', 'held-out F1',
-         'defaults held-out F1'],
-        [[r['held_out'], r['chosen'], common.fmt(r['rest_score'], 3),
-          common.fmt(r['held_out_f1'], 3), common.fmt(r['default_f1'], 3)] for r in rows])
+def cv_table(cv_by_protocol: dict, candidates: dict) -> str:
+    """Per held-out group and protocol: the candidate chosen on the other groups, its held-out
+    F1 and the defaults'."""
+    headers = ['held-out group']
+    for p in PROTOCOLS:
+        headers += [f'{p.name}: chosen on the rest', 'held-out F1', 'defaults F1']
+    folds = {p.name: {f.held_out: f for f in cv_by_protocol[p.name].folds} for p in PROTOCOLS}
+    first = next(iter(candidates))
+    rows = []
+    for group in folds[PROTOCOLS[0].name]:
+        row = [group]
+        for p in PROTOCOLS:
+            fold = folds[p.name][group]
+            row += [fold.choice, common.fmt(pooled_f1(fold.test_counts), 4),
+                    common.fmt(pooled_f1(candidates[first][group][p.name]), 4)]
+        rows.append(row)
+    return common.markdown_table(headers, rows)
 
 
 def settings_text(groups) -> str:
     rellis = [f for g in groups if g.name == 'rellis3d' for f in g.frames]
     rellis_h = f'{rellis[0].mount_height_m:.2f} m' if rellis else 'n/a'
+    protocols = '; '.join(f'`{p.name}`: {p.summary}' for p in PROTOCOLS)
     return (
         '- Peer settings: Patchwork++ (`pypatchworkpp.Parameters()`) and Patchwork '
         '(`PatchworkParams()`) defaults with `sensor_height` = the mount height: 1.73 m on '
-        f'KITTI, {rellis_h} on RELLIS-3D (measured once: minus the median z of the labelled '
-        'ground 3-10 m from the sensor), the true mount height on synthetic scans '
-        f'(0.3-2.5 m); below {LOW_MOUNT_M:g} m mounts `min_range` = {LOW_MOUNT_MIN_RANGE_M:g} m '
-        '(Patchwork: also the first zone\'s `min_ranges`), otherwise their default 2.7 m. '
-        'Patchwork++ RNR (reflected-noise removal) on for the KITTI scans (remission intensity), '
-        'off on RELLIS-3D (its intensity is normalised to ~0.012, not remission) and on '
-        'synthetic scans (their intensity is not physically modelled). linefit: its '
-        f'repository\'s kitti.toml (r_min 0.1 m) with `height` {LINEFIT_KITTI_HEIGHT_M} m on '
-        'KITTI (the file\'s own value) and the mount height elsewhere. Tilted mounts: the peers '
-        'get the height only (none of them takes a tilt).\n'
-        '- This project: one parameter set (`SegmenterParams()` defaults unless a variant is '
-        'named) for every data set, no mount height.\n'
-        '- Scoring (everyone alike, positive = ground, TP/FP/FN summed over frames for pooled '
-        'rows): SemanticKITTI ground 40/44/48/49/60/72, 0/1 ignored, 70 vegetation non-ground; '
-        'RELLIS-3D ground 1/3/10/23/31/33, 0 void ignored; synthetic truth = terrain hit (curb '
-        'faces ground), (0, 0, 0) no-return rows of organised scans ignored.\n')
+        f'KITTI, {rellis_h} on RELLIS-3D (minus the median z of its labelled ground 3-10 m '
+        'away), the true mount height on synthetic scans; below '
+        f'{LOW_MOUNT_M:g} m mounts `min_range` = {LOW_MOUNT_MIN_RANGE_M:g} m (Patchwork: also '
+        'the first zone\'s `min_ranges`). Patchwork++ RNR on for the KITTI scans (remission), '
+        'off on RELLIS-3D (intensity normalised to ~0.012) and synthetic scans (made-up '
+        f'intensity). linefit: its kitti.toml with `height` {LINEFIT_KITTI_HEIGHT_M} m on '
+        'KITTI (the file\'s own value), the mount height elsewhere. Tilted mounts: the peers '
+        'get the height only.\n'
+        '- This project: `SegmenterParams()` defaults (or the variant named) for every group, '
+        'no mount height.\n'
+        f'- Scoring (`tools/evaluation.py`, everyone alike; positive = ground): {protocols}. '
+        'SemanticKITTI ground 40/44/48/49/60/72, 0/1 not scored; RELLIS-3D ground '
+        '1/3/10/23/31/33, 0 void not scored, 4 tree non-ground under both. Synthetic truth = '
+        'terrain hit (curb faces ground), the same under both protocols. Pooled = TP/FP/FN '
+        'summed over the frames; IoU_g = TP / (TP + FP + FN) (GroundGrid).\n'
+        '- Held-out: leave one group out (a KITTI sequence, KITTI 00\'s three frames together; '
+        'RELLIS-3D; each synthetic family; `classic`): the candidate with the best mean of '
+        'the other groups\' pooled F1 under that protocol, scored on the held-out group.\n')
 
 
 def data_text(groups) -> str:
-    """A details block: every group, its frames' sizes and what each synthetic member shows."""
+    """A details block: every group and its frames' sizes."""
     lines = ['<details><summary>Data: groups and frames</summary>', '']
     for g in groups:
         lines.append(f'- `{g.name}` ({g.group}, {len(g.frames)} frame(s), '
                      f'{g.points_per_frame:,.0f} points per frame): {g.description}')
-        if g.name not in ('classic',) and g.group.startswith('synthetic'):
-            try:
-                from scenes.synthetic import family_scene
-                for frame in g.frames:
-                    seed = int(frame.name.rsplit('_', 1)[1])
-                    lines.append(f'  - `{frame.name}`: {family_scene(g.name, seed).description}')
-            except (ImportError, ValueError):
-                pass
     lines += ['', 'Synthetic family scans: 1024 firings per revolution, HDL-64E-like beams unless '
               'the family says otherwise, range noise 0.02 m, exact per-point truth '
-              '(`scenes.synthetic.family_scan(family, seed)`).', '', '</details>']
+              '(`scenes.synthetic.family_scan(family, seed)`; `family_scene(family, seed)'
+              '.description` says what each member shows).', '', '</details>']
     return '\n'.join(lines)
 
 
-def main(argv=None) -> int:
+def parse_args(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
-    ap.add_argument('--quick', action='store_true', help='1 seed per family, 2 timing rounds')
-    ap.add_argument('--seeds', type=int, default=None, help='seeds per family (default 3)')
+    ap.add_argument('--quick', action='store_true',
+                    help='1 seed per family, cold only, 2 timing rounds; never writes')
+    ap.add_argument('--real-only', action='store_true',
+                    help='the labelled real scans only (no synthetic group); never writes')
+    ap.add_argument('--seeds', type=int, default=None,
+                    help=f'seeds per family (default {DEFAULT_SEEDS}, --quick 1)')
     ap.add_argument('--families', default='', help='comma list of families (default all)')
     ap.add_argument('--methods', default=','.join(METHOD_KEYS))
+    ap.add_argument('--modes', default=None,
+                    help='comma list of cold, streamed (default both; --quick cold)')
     ap.add_argument('--variant', action='append', default=[],
                     help='NAME:key=value,key=value (repeatable): this project with changed '
-                         'parameters, evaluated side by side with the defaults (cold)')
+                         'parameters, cold, side by side with the defaults and a CV candidate')
+    ap.add_argument('--grid', nargs='*', default=[], metavar='NAME=V1,V2',
+                    help='variants of every combination of these values (a joint grid)')
     ap.add_argument('--ablation', action='store_true',
-                    help='evaluate the one-at-a-time switches of ablation_variants() (cold)')
-    ap.add_argument('--cv', action='store_true',
-                    help='leave-one-group-out choice among defaults + variants (+ ablation)')
+                    help='the one-at-a-time switches of ablation_variants() as variants, and '
+                         'the streamed theta-learning variants')
     ap.add_argument('--timing-rounds', type=int, default=None,
                     help='timed rounds over the KITTI scans (default 10, --quick 2)')
     ap.add_argument('--output', type=Path, default=RESULTS)
     ap.add_argument('--no-write', action='store_true', help='print only')
     args = ap.parse_args(argv)
-    seeds = args.seeds if args.seeds is not None else (1 if args.quick else 3)
-    rounds = args.timing_rounds if args.timing_rounds is not None else (2 if args.quick else 10)
-    keys = [k.strip() for k in args.methods.split(',') if k.strip()]
-    bad = sorted(set(keys) - set(METHOD_KEYS))
-    if bad or not keys or seeds < 1 or rounds < 0:
-        ap.error(f'--methods from {", ".join(METHOD_KEYS)} (bad: {", ".join(bad)}); '
-                 '--seeds >= 1; --timing-rounds >= 0')
+    args.seeds = args.seeds if args.seeds is not None else (1 if args.quick else DEFAULT_SEEDS)
+    args.timing_rounds = (args.timing_rounds if args.timing_rounds is not None
+                          else (2 if args.quick else 10))
+    args.keys = [k.strip() for k in args.methods.split(',') if k.strip()]
+    args.modes = [m.strip() for m in (args.modes or ('cold' if args.quick else ','.join(MODES)))
+                  .split(',') if m.strip()]
+    bad = sorted(set(args.keys) - set(METHOD_KEYS)) + sorted(set(args.modes) - set(MODES))
+    if bad or not args.keys or 'cold' not in args.modes or args.seeds < 1 \
+            or args.timing_rounds < 0:
+        ap.error(f'--methods from {", ".join(METHOD_KEYS)}, --modes from cold, streamed (cold '
+                 f'always; bad: {", ".join(bad) or "none"}); --seeds >= 1; --timing-rounds >= 0')
     try:
-        variants = dict(parse_variant(v) for v in args.variant)
+        args.variants = dict(parse_variant(v) for v in args.variant)
+        args.variants.update(grid_variants(args.grid))
     except (ValueError, TypeError) as exc:
         ap.error(str(exc))
     if args.ablation:
-        variants.update(ablation_variants())
-    families = [f.strip() for f in args.families.split(',') if f.strip()] or None
+        args.variants.update(ablation_variants())
+    args.families = [f.strip() for f in args.families.split(',') if f.strip()] or None
+    # only the full record of the defaults goes into RESULTS.md
+    args.partial = (args.quick or args.real_only or args.families is not None
+                    or args.seeds != DEFAULT_SEEDS or len(args.modes) < len(MODES)
+                    or set(args.keys) != set(METHOD_KEYS))
+    return args
 
+
+def report(args, groups, results, unavailable, timing, variant_results, cv_by_protocol) -> str:
+    """The markdown of the run (the RESULTS.md section)."""
+    cold = results['cold']
+    keys = [k for k in args.keys if k not in unavailable]
+    candidates = len(variant_results)
+    parts = ['## Ground quality (bench_quality.py)', '',
+             common.machine_markdown(common.command_line()), settings_text(groups)]
+    parts += [f'- **{LABELS[k]} not run**: {why}' for k, why in unavailable.items()]
+    parts += ['', data_text(groups), '',
+              '### Both protocols, cold: this project vs Patchwork++', '',
+              both_protocols_table(groups, cold, cv_by_protocol, candidates), '',
+              losses_text(groups, cold)]
+    for mode in args.modes:
+        parts += ['', f'### Every method, {mode} ({MODE_TEXT[mode]}): F1 '
+                  f'{" / ".join(p.name for p in PROTOCOLS)}', '',
+                  all_methods_table(groups, results[mode], keys)]
+    if timing:
+        parts += ['', f'### Time on the {timing["frames"]} KITTI scans ({timing["points"]:,.0f} '
+                  f'points on average), streamed, {timing["rounds"]} rounds', '',
+                  timing_table(timing, keys)]
+    if candidates > 1:
+        for p in PROTOCOLS:
+            parts += ['', f'### Variants of this project (cold; {p.name}; pooled F1 per group, '
+                      'change vs defaults)', '', variant_table(groups, variant_results, p)]
+        parts += ['', '### Leave-one-group-out choice among the defaults and the variants', '',
+                  cv_table(cv_by_protocol, variant_results)]
+    if args.ablation and 'streamed' in args.modes:
+        streamed = {'defaults': results['streamed']['gp'],
+                    **run_variants(groups, theta_stream_variants(), 'streamed')}
+        parts += ['', '### theta learning in a stream (streamed; pooled F1 per group, change '
+                  'vs defaults)', '', variant_table(groups, streamed, DEFAULT_PROTOCOL)]
+    parts += ['', '<details><summary>Per labelled real scan, cold</summary>', '',
+              real_frames_table(groups, cold), '', '</details>']
+    return '\n'.join(parts) + '\n'
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
     t_start = time.perf_counter()
-    command = common.command_line()
-    groups = load_groups(seeds, families)
+    groups = load_groups(args.seeds, args.families, synthetic=not args.real_only)
+    if not groups:
+        print('bench_quality: no group to evaluate (no data found)', file=sys.stderr)
+        return 1
     print(f'loaded {len(groups)} groups, {sum(len(g.frames) for g in groups)} frames in '
           f'{time.perf_counter() - t_start:.0f} s', file=sys.stderr, flush=True)
-    results, unavailable = run_all(groups, keys, MODES)
-    keys = [k for k in keys if k not in unavailable]
-    timing = time_kitti(groups, keys, rounds) if rounds else {}
-
-    parts = ['## Ground quality (bench_quality.py)', '', common.machine_markdown(command),
-             settings_text(groups)]
-    for key, why in unavailable.items():
-        parts.append(f'- **{LABELS[key]} not run**: {why}')
-    parts += ['', data_text(groups)]
-    for mode in MODES:
-        parts += ['', f'### Pooled per data set / family, {mode} ({MODE_TEXT[mode]})', '',
-                  pooled_table(groups, results[mode], keys), '',
-                  losses_text(groups, results[mode])]
-    if timing:
-        parts += ['', f'### Time on the {timing["frames"]} KITTI scans '
-                  f'({timing["points"]:,.0f} points on average), streamed, {rounds} rounds', '',
-                  timing_table(timing, keys)]
-    if variants:
-        t0 = time.perf_counter()
-        variant_results = {'defaults': results['cold']['gp'] if 'gp' in results['cold'] else {
-            g.name: run_frames('gp', g.frames, 'cold') for g in groups}}
-        for name, params in variants.items():
-            variant_results[name] = {g.name: run_frames('gp', g.frames, 'cold', params)
-                                     for g in groups}
-            print(f'variant {name} done', file=sys.stderr, flush=True)
-        parts += ['', '### Variants of this project (cold; pooled F1 per group, change vs '
-                  'defaults)', '', variant_table(groups, variant_results),
-                  '', f'Variants took {time.perf_counter() - t0:.0f} s.']
-        if args.ablation:
-            streamed = {'defaults': results['streamed']['gp'] if 'gp' in results['streamed']
-                        else {g.name: run_frames('gp', g.frames, 'streamed') for g in groups}}
-            for name, params in theta_stream_variants().items():
-                streamed[name] = {g.name: run_frames('gp', g.frames, 'streamed', params)
-                                  for g in groups}
-            parts += ['', '### theta learning in a stream (streamed; pooled F1 per group, '
-                      'change vs defaults)', '', variant_table(groups, streamed)]
-        if args.cv:
-            counts = {n: {g: [{k: m[k] for k in ('tp', 'fp', 'fn', 'tn')} for m in ms]
-                          for g, ms in r.items()} for n, r in variant_results.items()}
-            rows = loso_cv_from_counts(counts, groups)
-            parts += ['', '### Leave-one-group-out choice among defaults and variants', '',
-                      cv_table(rows)]
-    for mode in MODES:
-        parts += ['', f'<details><summary>Per frame, {mode}</summary>', '',
-                  per_frame_table(groups, results[mode], keys), '', '</details>']
-    parts += ['', f'Total wall time of the run: {time.perf_counter() - t_start:.0f} s.']
-    text = '\n'.join(parts) + '\n'
+    results, unavailable = run_all(groups, args.keys, args.modes)
+    if 'gp' not in results['cold']:
+        print(f'bench_quality: this project did not run: {unavailable.get("gp")}',
+              file=sys.stderr)
+        return 1
+    keys = [k for k in args.keys if k not in unavailable]
+    timing = time_kitti(groups, keys, args.timing_rounds)
+    variant_results = {'defaults': results['cold']['gp'],
+                       **run_variants(groups, args.variants)}
+    cv_by_protocol = {p.name: cross_validate(variant_results, groups, p) for p in PROTOCOLS}
+    text = report(args, groups, results, unavailable, timing, variant_results, cv_by_protocol)
+    text += f'\nTotal wall time of the run: {time.perf_counter() - t_start:.0f} s.\n'
     print(text)
-    if not args.no_write:
+    if args.partial:
+        print('partial run (--quick, --real-only, a subset or other seeds): RESULTS.md not '
+              'written', file=sys.stderr)
+    elif not args.no_write:
         common.update_results_section(args.output, 'bench_quality', text)
         print(f'updated {args.output}', file=sys.stderr)
     return 0

@@ -137,24 +137,53 @@ def main(argv=None):
     if not frames:
         print('no real frames found under', common.DATA_DIR, file=sys.stderr)
         return 1
-    rng = np.random.default_rng(args.seed)
     params = SegmenterParams()
-
-    def repeats_for(n):
-        if args.repeats is not None:
-            return args.repeats
-        if args.quick:
-            return 2
-        return 5 if n >= 1_000_000 else 7
-
     # every compiled stage loaded (or compiled) before the first timed call: otherwise the
     # first size's calls take the numpy path of the stages still loading in the background
     GroundSegmenter(params).warm_up()
     compiled.wait(300.0)
+    size_text = size_section(args, frames, sizes, params)
+    labeled = common.load_labeled_kitti()
+    gframe = labeled.frames[0] if labeled else frames[0]
+    grid_rows = [grid_row(args, params, gframe, m, nb) for m, nb in grids]
+
+    lines = ['## Scaling (`bench_scaling.py`)', '', common.machine_markdown(command),
+             f'- Clouds from real KITTI frames ({len(frames)} frames: subsets below one frame, '
+             f'stacked copies with random yaw + 1 cm jitter above); SegmenterParams() defaults '
+             f'(grid {params.num_segments} x {params.num_bins}); per size a fresh segmenter, '
+             f'2 untimed calls, then timed streaming calls (7, or 5 from 1M points, unless '
+             f'--repeats/--quick). Memory in separate untimed calls (see the script docstring).',
+             '', '### Cost vs number of points', '', size_text, '']
+    if grid_rows:
+        lines += [f'### Cost vs grid size (M segments x N bins) on {gframe.name} '
+                  f'({len(gframe):,} points)', '',
+                  common.markdown_table(['M x N', 'total ms median'] + [f'{k} ms' for k in STAGES]
+                                        + ['candidates', 'F1', 'recall'], grid_rows), '']
+    lines.append(f'Total wall time of the run: {time.perf_counter() - t_start:.0f} s.')
+    text = '\n'.join(lines) + '\n'
+    print(text)
+    if not args.no_write:
+        common.update_results_section(args.output, 'bench_scaling', text)
+        print(f'updated {args.output}', file=sys.stderr)
+    return 0
+
+
+def repeats_for(args, n: int) -> int:
+    """Timed calls per setting: --repeats, else 2 with --quick, 5 from 1M points, else 7."""
+    if args.repeats is not None:
+        return args.repeats
+    if args.quick:
+        return 2
+    return 5 if n >= 1_000_000 else 7
+
+
+def size_section(args, frames, sizes, params) -> str:
+    """The cost-vs-points table, the slope table and the linear fit (markdown)."""
+    rng = np.random.default_rng(args.seed)
     rows, totals, stage_meds = [], [], {k: [] for k in STAGES}
     for n in sizes:
         pts = common.make_cloud_of_size(frames, n, rng)
-        seg, wall, stages, last = time_segmenter(params, pts, repeats_for(n))
+        seg, wall, stages, last = time_segmenter(params, pts, repeats_for(args, n))
         traced = rss = None
         if not args.no_memory:
             traced, rss = measure_memory(seg, pts)
@@ -171,7 +200,6 @@ def main(argv=None):
         print(f'{n:>9,} points: {med:8.1f} ms', file=sys.stderr)
         del pts, seg, last
         gc.collect()
-
     size_table = common.markdown_table(
         ['points', 'total ms median', 'wall ms p95', 'ns / point'] + [f'{k} ms' for k in STAGES]
         + ['candidates', 'tracemalloc peak MB', 'RSS delta MB'], rows)
@@ -186,50 +214,28 @@ def main(argv=None):
         ['stage', 'slope of log(ms) vs log(points), all sizes', 'slope, >= 100k points'],
         slope_rows)
     fixed, per_point, worst = linear_fit(sizes, totals)
-    slope_table += (f'\n\nLinear fit total ms = a + b * points over all sizes: a = '
-                    f'{common.fmt(fixed, 1)} ms (per-frame fixed cost), b = '
-                    f'{common.fmt(per_point * 1e6, 1)} ns per point; largest relative residual '
-                    f'{common.fmt(100 * worst, 0)} % (small = cost linear in the points).')
+    return (f'{size_table}\n\n{slope_table}\n\nLinear fit total ms = a + b * points over all '
+            f'sizes: a = {common.fmt(fixed, 1)} ms (per-frame fixed cost), b = '
+            f'{common.fmt(per_point * 1e6, 1)} ns per point; largest relative residual '
+            f'{common.fmt(100 * worst, 0)} % (small = cost linear in the points).')
 
-    grid_rows = []
-    labeled = common.load_labeled_kitti()
-    gframe = labeled.frames[0] if labeled else frames[0]
-    for m, nb in grids:
-        try:
-            gp = params.replace(num_segments=m, num_bins=nb)
-        except ValueError as exc:
-            grid_rows.append([f'{m} x {nb}', f'invalid: {exc}'] + ['-'] * 9)
-            continue
-        _, wall, stages, last = time_segmenter(gp, gframe.points, repeats_for(len(gframe)))
-        met = common.score(last.ground_mask, gframe)
-        is_default = (m, nb) == (params.num_segments, params.num_bins)
-        grid_rows.append([f'{m} x {nb}' + (' (default)' if is_default else ''),
-                          common.fmt(common.median(stages.get('total', wall)))]
-                         + [common.fmt(common.median(stages.get(k, [])), 1) for k in STAGES]
-                         + [common.fmt(last.stats.get('candidates'), 0),
-                            common.fmt(met['f1'], 3) if met else '-',
-                            common.fmt(met['recall'], 3) if met else '-'])
-        print(f'grid {m}x{nb}: {common.median(stages.get("total", wall)):.1f} ms', file=sys.stderr)
 
-    lines = ['## Scaling (`bench_scaling.py`)', '', common.machine_markdown(command),
-             f'- Clouds from real KITTI frames ({len(frames)} frames: subsets below one frame, '
-             f'stacked copies with random yaw + 1 cm jitter above); SegmenterParams() defaults '
-             f'(grid {params.num_segments} x {params.num_bins}); per size a fresh segmenter, '
-             f'2 untimed calls, then timed streaming calls (7, or 5 from 1M points, unless '
-             f'--repeats/--quick). Memory in separate untimed calls (see the script docstring).',
-             '', '### Cost vs number of points', '', size_table, '', slope_table, '']
-    if grid_rows:
-        lines += [f'### Cost vs grid size (M segments x N bins) on {gframe.name} '
-                  f'({len(gframe):,} points)', '',
-                  common.markdown_table(['M x N', 'total ms median'] + [f'{k} ms' for k in STAGES]
-                                        + ['candidates', 'F1', 'recall'], grid_rows), '']
-    lines.append(f'Total wall time of the run: {time.perf_counter() - t_start:.0f} s.')
-    text = '\n'.join(lines) + '\n'
-    print(text)
-    if not args.no_write:
-        common.update_results_section(args.output, 'bench_scaling', text)
-        print(f'updated {args.output}', file=sys.stderr)
-    return 0
+def grid_row(args, params, frame, m: int, nb: int) -> list:
+    """One row of the cost-vs-grid table: M x N on ``frame``."""
+    try:
+        gp = params.replace(num_segments=m, num_bins=nb)
+    except ValueError as exc:
+        return [f'{m} x {nb}', f'invalid: {exc}'] + ['-'] * 9
+    _, wall, stages, last = time_segmenter(gp, frame.points, repeats_for(args, len(frame)))
+    met = common.score(last.ground_mask, frame)
+    is_default = (m, nb) == (params.num_segments, params.num_bins)
+    print(f'grid {m}x{nb}: {common.median(stages.get("total", wall)):.1f} ms', file=sys.stderr)
+    return ([f'{m} x {nb}' + (' (default)' if is_default else ''),
+             common.fmt(common.median(stages.get('total', wall)))]
+            + [common.fmt(common.median(stages.get(k, [])), 1) for k in STAGES]
+            + [common.fmt(last.stats.get('candidates'), 0),
+               common.fmt(met['f1'], 3) if met else '-',
+               common.fmt(met['recall'], 3) if met else '-'])
 
 
 if __name__ == '__main__':

@@ -84,9 +84,8 @@ def synthetic_rows(seeds, params):
 
 def real_rows(params):
     rows = []
-    for loader in (common.load_labeled_kitti, common.load_kitti00_labeled):
-        ds = loader()
-        for frame in (ds.frames if ds else []):
+    for ds in common.labelled_groups():
+        for frame in ds.frames:
             keep = frame.truth & (frame.evaluated if frame.evaluated is not None else True)
             truth = frame.points[keep, 2].astype(np.float64)
             rows.append(frame_row(frame.name, frame.points, keep, truth, params))

@@ -8,10 +8,10 @@ Usage::
 Two runs through ``tune.tune`` (the code of ``gp-ground-seg tune``), ``--trials`` trials per
 study, leave-one-scene-out over the scenes:
 
-1. SemanticKITTI: ``labeled/semantickitti_seq00_00000{0,1,2}`` (KITTI 00 frames 0-2: one scene)
-   and ``kitti_sequnknown_spvnas_000000`` (another sequence: a second scene); ground 40, 44,
-   48, 49, 60, 72; 0, 1 ignored.
-2. The same plus the RELLIS-3D off-road Ouster scan as a third scene, scored with RELLIS-3D's
+1. SemanticKITTI: every labelled KITTI scan of ``scenes.real_data`` (sequences 00 (frames 0-2),
+   02, 04, 05, 06, 08 and 10: seven scenes, one per sequence); ground 40, 44, 48, 49, 60, 72;
+   0, 1 ignored; vegetation non-ground (the default protocol).
+2. The same plus the RELLIS-3D off-road Ouster scan as one more scene, scored with RELLIS-3D's
    own classes (ground 1, 3, 10, 23, 31, 33; 0 ignored): does a set tuned on KITTI carry over
    to another sensor and world, and the other way round?
 
@@ -32,25 +32,28 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import common  # noqa: E402
 
+from gp_ground_segmentation.ros.config import load_params_file  # noqa: E402
+from gp_ground_segmentation.tools import tune  # noqa: E402
+from gp_ground_segmentation.tools.engine import open_engine  # noqa: E402
+from gp_ground_segmentation.tools.evaluation import DEFAULT_PROTOCOL  # noqa: E402
+
 RESULTS = Path(__file__).resolve().parent / 'RESULTS.md'
 
 
 def frames_of(data: Path, with_rellis: bool) -> list:
-    from gp_ground_segmentation.tools import tune
-    from gp_ground_segmentation.tools.evaluation import DATASET_CLASSES
-    kitti = [data / 'labeled' / f'semantickitti_seq00_00000{i}.bin' for i in range(3)]
-    kitti.append(data / 'kitti_sequnknown_spvnas_000000.bin')
-    frames = tune.labelled_frames([str(p) for p in kitti], None,
-                                  *DATASET_CLASSES['semantickitti'], tune.DEFAULT_SCENE_RULE)
-    if with_rellis:
-        frames += tune.labelled_frames([str(data / 'labeled' /
-                                            'rellis3d_examplebundle_000001.bin')], None,
-                                       *DATASET_CLASSES['rellis3d'], tune.DEFAULT_SCENE_RULE)
+    """tune's frames of every labelled KITTI scan found (each sequence a scene: the file stem
+    without its frame number), and the RELLIS-3D scan with its own classes."""
+    frames = []
+    for scan in common.labelled_scans(data):
+        if not scan.exists() or (scan.group == 'rellis3d' and not with_rellis):
+            continue
+        frames += tune.labelled_frames([str(scan.bin_path)], None,
+                                       *DEFAULT_PROTOCOL.classes(scan.ontology),
+                                       tune.DEFAULT_SCENE_RULE)
     return frames
 
 
 def run(frames, engine, trials, seed):
-    from gp_ground_segmentation.tools import tune
     t0 = time.perf_counter()
     report = tune.tune(frames, engine, trials, seed,
                        log=lambda text: print(f'  {text}', flush=True))
@@ -58,12 +61,11 @@ def run(frames, engine, trials, seed):
 
 
 def section(title, report, wall_s) -> str:
-    from gp_ground_segmentation.tools.tune import _fmt
     rows = [['all frames (training score, final study)', f'{report.train_f1_defaults:.4f}',
              f'{report.train_f1_tuned:.4f}',
              f'{report.train_f1_tuned - report.train_f1_defaults:+.4f}'],
-            ['**leave-one-scene-out CV (pooled held-out)**', _fmt(report.cv_f1_defaults),
-             _fmt(report.cv_f1_tuned),
+            ['**leave-one-scene-out CV (pooled held-out)**', tune._fmt(report.cv_f1_defaults),
+             tune._fmt(report.cv_f1_tuned),
              f'{report.cv_f1_tuned - report.cv_f1_defaults:+.4f}' if report.folds else 'n/a']]
     for fold in report.folds:
         rows.append([f"held out {fold['held_out']} ({fold['frames']} frame(s))",
@@ -94,9 +96,6 @@ def main(argv=None) -> int:
     if not (data / 'labeled').is_dir():
         print(f'skipped: {data / "labeled"} not found')
         return 0
-    from gp_ground_segmentation.ros.config import load_params_file
-    from gp_ground_segmentation.tools import tune
-    from gp_ground_segmentation.tools.engine import open_engine
     parts = []
     with open_engine(jobs=args.jobs) as engine:
         print('run 1: SemanticKITTI frames', flush=True)
@@ -106,12 +105,12 @@ def main(argv=None) -> int:
             path.write_text(tune.params_yaml(report, 'semantickitti'))
             load_params_file(path)  # the written file is one the node accepts
             written = path.read_text()
-        parts.append(section('SemanticKITTI: KITTI 00 frames 0-2 (one scene) + spvnas frame '
-                             '(second scene)', report, wall))
+        parts.append(section(f'SemanticKITTI: {len(report.frames)} scans, '
+                             f'{len(report.scenes)} scenes (one per sequence)', report, wall))
         parts.append('Written parameter file (run 1):\n\n```yaml\n' + written + '```\n')
-        print('run 2: + RELLIS-3D as a third scene', flush=True)
+        print('run 2: + RELLIS-3D as one more scene', flush=True)
         report2, wall2 = run(frames_of(data, True), engine, args.trials, args.seed)
-        parts.append(section('SemanticKITTI + RELLIS-3D (third scene, its own classes)',
+        parts.append(section('SemanticKITTI + RELLIS-3D (one more scene, its own classes)',
                              report2, wall2))
     text = (f'## Tuner: cross-validated ground F1, tuned vs defaults (`bench_tune.py`)\n\n'
             f'{common.machine_markdown(common.command_line())}'

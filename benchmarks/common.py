@@ -1,10 +1,15 @@
 # SPDX-License-Identifier: Apache-2.0
 """Shared helpers of the benchmark scripts: data sets, scoring, timing, memory, tables, machine.
 
-Data (see ../shared/data/README.md; every loader returns ``None`` with a printed reason when its
-file is absent, so a benchmark runs on whatever is there):
+Data (``scenes.real_data`` finds ../shared/data and lists its labelled scans; every loader
+returns ``None`` or skips with a printed reason when its file is absent, so a benchmark runs on
+whatever is there):
 
-* ``kitti_labeled``  the SemanticKITTI-labelled scan (123,389 points), per-point truth;
+* ``labelled_groups``  every labelled real scan, one ``Dataset`` per cross-validation group: the
+                     KITTI sequences 00 (frames 0-2), 02, 04, 05, 06, 08 (the spvnas scan), 10
+                     with SemanticKITTI labels, and the RELLIS-3D scan with its own;
+* ``load_labeled_kitti`` the spvnas scan alone (KITTI 08 frame 0, 123,389 points), the one
+                     labelled ~120k-point frame of the speed benchmarks;
 * ``kitti00_bag``    the 6 KITTI 00 PointCloud2 frames of the mcap bag, read with rosbags and
                      decoded with ``gp_ground_segmentation.ros.cloud`` (the node's decoder);
                      no labels;
@@ -18,11 +23,12 @@ one array every method is fed. Intensity is KITTI remission (0..1) for the KITTI
 synthetic reflectance for the scenes, a uint8 intensity / 255 for the VLP-16 and 0 where the file
 has none (``has_intensity`` False then).
 
-Scoring is ``gp_ground_segmentation.tools.evaluation`` for everyone: SemanticKITTI ground
-classes 40, 44, 48, 49, 60, 72; 0 unlabeled and 1 outlier ignored; 70 vegetation non-ground.
-Synthetic truth is
+Scoring is ``gp_ground_segmentation.tools.evaluation`` for everyone, under a named protocol
+(default: vegetation non-ground; ``patchworkpp``: vegetation not scored). A labelled real frame
+keeps its classes, so it is scored under any protocol (``Frame.scoring``). Synthetic truth is
 ``is_ground`` (terrain surface, curb faces included as ground, as SemanticKITTI labels curbs
-sidewalk). Metrics of several frames are pooled (summed TP/FP/FN), not averaged.
+sidewalk), the same under every protocol. Metrics of several frames are pooled (summed
+TP/FP/FN), not averaged.
 """
 
 from __future__ import annotations
@@ -45,20 +51,10 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 from gp_ground_segmentation.tools.evaluation import (  # noqa: E402
-    RELLIS_3D, SEMANTIC_KITTI, ground_truth_from_labels, pooled_metrics, truth_metrics)
+    DEFAULT_PROTOCOL, SEMANTIC_KITTI, LabelOntology, ScoringProtocol, ground_truth_from_labels,
+    pooled_metrics, truth_metrics)
+from scenes.real_data import DATA_DIR, LabelledScan, labelled_scan, labelled_scans  # noqa: E402
 
-
-def _find_data_dir() -> Path:
-    """../shared/data next to the repository, or next to a parent (a git worktree under wt/)."""
-    for parent in REPO.parents:
-        if (parent / 'shared' / 'data').is_dir():
-            return parent / 'shared' / 'data'
-    return REPO.parent / 'shared' / 'data'
-
-
-DATA_DIR = _find_data_dir()
-LABELED_BIN = 'kitti_sequnknown_spvnas_000000.bin'
-LABELED_LABEL = 'kitti_sequnknown_spvnas_000000.label'
 UNLABELED_BIN = 'kitti_unlabeled_patchworkpp_000000.bin'
 BAG_DIR = 'kitti00_velodyne_points'
 BAG_TOPIC = '/velodyne_points'
@@ -84,10 +80,19 @@ class Frame:
     truth: Optional[np.ndarray] = None  # (N,) bool true ground, or None
     evaluated: Optional[np.ndarray] = None  # (N,) bool points that are scored, or None = all
     mount_height_m: Optional[float] = None  # sensor above the ground (m), for peers that need it
+    classes: Optional[np.ndarray] = None  # (N,) semantic classes of a labelled real scan
+    ontology: Optional[LabelOntology] = None  # the classes' ontology
 
     @property
     def labeled(self) -> bool:
         return self.truth is not None
+
+    def scoring(self, protocol: ScoringProtocol = DEFAULT_PROTOCOL) -> tuple:
+        """(truth, evaluated) under ``protocol``: from the classes of a labelled real scan, the
+        synthetic truth as it is (it has no vegetation class to treat apart)."""
+        if self.classes is None:
+            return self.truth, self.evaluated
+        return ground_truth_from_labels(self.classes, self.ontology, protocol)
 
     def __len__(self):
         return int(self.points.shape[0])
@@ -127,60 +132,52 @@ def _missing(path: Path) -> bool:
     return False
 
 
-def labeled_real_files(data_dir: Path = DATA_DIR) -> list:
-    """(scan, .bin path, .label path, label ontology) of every labelled real scan the
-    benchmarks know, in stream order: the spvnas SemanticKITTI scan (``kitti_spvnas``), KITTI
-    00 frames 0-2 (``kitti00_000000`` ..) and the RELLIS-3D scan (``rellis3d_000001``). The
-    one list of their files for the loaders below and the probes."""
-    labeled = data_dir / 'labeled'
-    kitti00 = [labeled / f'semantickitti_seq00_{i:06d}' for i in range(3)]
-    rellis = labeled / 'rellis3d_examplebundle_000001'
-    return ([('kitti_spvnas', data_dir / LABELED_BIN, data_dir / LABELED_LABEL, SEMANTIC_KITTI)]
-            + [(f'kitti00_{i:06d}', stem.with_suffix('.bin'), stem.with_suffix('.label'),
-                SEMANTIC_KITTI) for i, stem in enumerate(kitti00)]
-            + [('rellis3d_000001', rellis.with_suffix('.bin'), rellis.with_suffix('.label'),
-                RELLIS_3D)])
+def labelled_frame(scan: LabelledScan) -> Frame:
+    """The Frame of a labelled real scan, truth under the default protocol (``Frame.scoring``
+    gives any other). KITTI: remission intensity, the HDL-64E's 1.73 m mount; RELLIS-3D: its
+    intensity is normalised to ~0..0.012, not remission, so it is treated as absent (steps tuned
+    for remission, Patchwork++'s RNR, are not misled), and its mount is measured once
+    (:func:`rellis_mount_height`)."""
+    points, classes = scan.read()
+    truth, evaluated = ground_truth_from_labels(classes, scan.ontology)
+    kitti = scan.ontology is SEMANTIC_KITTI
+    mount = KITTI_SENSOR_HEIGHT_M if kitti else rellis_mount_height(points, truth)
+    return Frame(scan.name, points, kitti, truth, evaluated, mount, classes, scan.ontology)
 
 
-def _labeled_files(data_dir: Path, prefix: str) -> list:
-    """The entries of :func:`labeled_real_files` whose scan name starts with ``prefix``."""
-    return [entry for entry in labeled_real_files(data_dir) if entry[0].startswith(prefix)]
+def labelled_groups(data_dir: Path = DATA_DIR) -> list:
+    """One Dataset per cross-validation group of the labelled real scans found (a KITTI
+    sequence, ``kitti00`` holding frames 0-2 in order, or ``rellis3d``); a missing scan is
+    skipped with a line on stderr."""
+    groups: dict = {}
+    for scan in labelled_scans(data_dir):
+        if _missing(scan.bin_path) or _missing(scan.label_path):
+            continue
+        groups.setdefault(scan.group, []).append(labelled_frame(scan))
+    return [Dataset(name, frames, _group_text(frames), 'real') for name, frames in groups.items()]
+
+
+def _group_text(frames) -> str:
+    first = frames[0]
+    if first.ontology is SEMANTIC_KITTI:
+        return (f'SemanticKITTI sequence {first.name[5:7]}, frame(s) '
+                f'{", ".join(str(int(f.name[-6:])) for f in frames)} (HDL-64E)')
+    return 'RELLIS-3D off-road Ouster OS1-64 scan, organised, its own ontology'
 
 
 def load_labeled_kitti(data_dir: Path = DATA_DIR) -> Optional[Dataset]:
-    """The SemanticKITTI-labelled scan with its truth (vegetation non-ground)."""
-    ((_, bin_path, label_path, _),) = _labeled_files(data_dir, 'kitti_spvnas')
-    if _missing(bin_path) or _missing(label_path):
+    """The spvnas SemanticKITTI scan (KITTI 08 frame 0) alone, truth under the default
+    protocol: the labelled ~120k-point frame of the speed benchmarks."""
+    scan = labelled_scan('kitti08_000000', data_dir)
+    if _missing(scan.bin_path) or _missing(scan.label_path):
         return None
-    pts, classes = _read_labeled_pair(bin_path, label_path)
-    truth, evaluated = ground_truth_from_labels(classes)
-    frame = Frame('semantickitti_000000', pts, True, truth, evaluated, KITTI_SENSOR_HEIGHT_M)
-    return Dataset('kitti_labeled', [frame], 'SemanticKITTI scan, labels (ground '
-                   '40/44/48/49/60/72; 0/1 ignored; 70 non-ground)', 'real')
+    return Dataset('kitti_labeled', [labelled_frame(scan)], 'SemanticKITTI scan (KITTI 08 '
+                   'frame 0), labels', 'real')
 
 
-def _read_labeled_pair(bin_path: Path, label_path: Path):
-    """(points (N, 4) float32, semantic classes (N,) uint32) of a .bin/.label pair."""
-    from gp_ground_segmentation.tools.evaluation import semantic_classes
-    from gp_ground_segmentation.tools.io import read_kitti_bin, read_semantickitti_labels
-    pts = np.ascontiguousarray(read_kitti_bin(bin_path), dtype=np.float32)
-    labels = read_semantickitti_labels(label_path, expected_points=len(pts))
-    return pts, semantic_classes(labels)
-
-
-def load_kitti00_labeled(data_dir: Path = DATA_DIR) -> Optional[Dataset]:
-    """KITTI 00 frames 0-2 with SemanticKITTI labels (about one scene), in stream order."""
-    frames = []
-    for name, bin_path, label_path, _ in _labeled_files(data_dir, 'kitti00_'):
-        if _missing(bin_path) or _missing(label_path):
-            continue
-        pts, classes = _read_labeled_pair(bin_path, label_path)
-        truth, evaluated = ground_truth_from_labels(classes)
-        frames.append(Frame(name, pts, True, truth, evaluated, KITTI_SENSOR_HEIGHT_M))
-    if not frames:
-        return None
-    return Dataset('kitti00_labeled', frames, 'KITTI 00 frames 0-2, SemanticKITTI labels '
-                   '(ground 40/44/48/49/60/72; 0/1 ignored; 70 non-ground)', 'real')
+def labelled_group(name: str, data_dir: Path = DATA_DIR) -> Optional[Dataset]:
+    """The :func:`labelled_groups` group ``name`` (e.g. 'kitti00', 'rellis3d'), or None."""
+    return next((g for g in labelled_groups(data_dir) if g.name == name), None)
 
 
 def rellis_mount_height(points: np.ndarray, truth: np.ndarray) -> float:
@@ -191,21 +188,6 @@ def rellis_mount_height(points: np.ndarray, truth: np.ndarray) -> float:
     r = np.hypot(points[:, 0], points[:, 1])
     near = truth & (r > 3.0) & (r < 10.0)
     return float(-np.median(points[near, 2]))
-
-
-def load_rellis(data_dir: Path = DATA_DIR) -> Optional[Dataset]:
-    """The RELLIS-3D Ouster OS1-64 scan (organised, (0, 0, 0) no-returns) with its labels."""
-    ((name, bin_path, label_path, ontology),) = _labeled_files(data_dir, 'rellis3d_')
-    if _missing(bin_path) or _missing(label_path):
-        return None
-    pts, classes = _read_labeled_pair(bin_path, label_path)
-    # RELLIS-3D ontology, not SemanticKITTI's (gp_ground_segmentation.tools.evaluation)
-    truth, evaluated = ground_truth_from_labels(classes, ontology=ontology)
-    # The intensity is normalised to ~0..0.012, not KITTI's 0..1 remission: treated as absent so
-    # intensity-based steps tuned for remission (Patchwork++'s RNR) are not misled.
-    frame = Frame(name, pts, False, truth, evaluated, rellis_mount_height(pts, truth))
-    return Dataset('rellis3d', [frame], 'RELLIS-3D off-road Ouster OS1-64 scan, organised '
-                   '(ground dirt/grass/asphalt/concrete/puddle/mud; void ignored)', 'real')
 
 
 def load_family(family: str, seeds) -> Optional[Dataset]:
@@ -402,11 +384,13 @@ def make_cloud_of_size(frames, n_points: int, rng: np.random.Generator,
 
 # ------------------------------------------------------------------------------------ scoring
 
-def score(pred_ground: np.ndarray, frame: Frame) -> Optional[dict]:
-    """Ground precision/recall/F1 + counts of one frame, or None when the frame has no truth."""
+def score(pred_ground: np.ndarray, frame: Frame,
+          protocol: ScoringProtocol = DEFAULT_PROTOCOL) -> Optional[dict]:
+    """Ground precision/recall/F1/IoU + counts of one frame under ``protocol``, or None when the
+    frame has no truth."""
     if frame.truth is None:
         return None
-    return truth_metrics(pred_ground, frame.truth, frame.evaluated)
+    return truth_metrics(pred_ground, *frame.scoring(protocol))
 
 
 def pool(metrics: list) -> Optional[dict]:
@@ -574,31 +558,6 @@ def command_line() -> str:
     except ValueError:
         pass
     return ' '.join(['python', str(script)] + sys.argv[1:])
-
-
-def probe_arguments(description: str, argv=None):
-    """(args, SegmenterParams) of a probe script's command line: ``--set name=value ...`` over
-    this project's defaults and ``--no-write`` (print only)."""
-    import argparse
-    from gp_ground_segmentation import SegmenterParams
-    ap = argparse.ArgumentParser(description=description)
-    ap.add_argument('--set', nargs='*', default=[], help='name=value over the defaults (ours)')
-    ap.add_argument('--no-write', action='store_true', help='print only')
-    args = ap.parse_args(argv)
-    return args, SegmenterParams(**parse_param_values(args.set))
-
-
-def report_probe(args, results_path: Path, section: str, title: str, note: str, headers,
-                 rows) -> str:
-    """A probe's RESULTS.md section (title, machine and command, ``note``, the table), printed,
-    and written unless ``--no-write`` or ``--set`` was given (a changed parameter set is not
-    the record of the defaults). Returns the text."""
-    text = (f'## {title}\n\n' + machine_markdown(command_line()) + '\n' + note + '\n\n'
-            + markdown_table(headers, rows) + '\n')
-    print(text)
-    if not args.no_write and not args.set:
-        update_results_section(results_path, section, text)
-    return text
 
 
 def update_results_section(path: Path, section: str, text: str) -> None:

@@ -16,7 +16,7 @@ from gp_ground_segmentation import SegmenterParams  # noqa: E402
 from gp_ground_segmentation.core.lines import deming_fit  # noqa: E402
 
 
-def _counts(tp, fp, fn):
+def _metrics(tp, fp, fn):
     return [{'tp': tp, 'fp': fp, 'fn': fn, 'tn': 0}]
 
 
@@ -25,22 +25,45 @@ class _Group:
         self.name = name
 
 
-def test_loso_cv_chooses_on_the_other_groups_only():
+def test_cross_validation_chooses_per_protocol_on_the_other_groups():
     groups = [_Group(n) for n in ('a', 'b', 'c')]
-    # 'wide' is best on a and b, 'special' only on c (by a lot).
-    counts = {'defaults': {'a': _counts(90, 10, 10), 'b': _counts(90, 10, 10),
-                           'c': _counts(50, 50, 50)},
-              'wide': {'a': _counts(95, 5, 5), 'b': _counts(95, 5, 5), 'c': _counts(40, 60, 60)},
-              'special': {'a': _counts(60, 40, 40), 'b': _counts(60, 40, 40),
-                          'c': _counts(99, 1, 1)}}
-    rows = {r['held_out']: r for r in bq.loso_cv_from_counts(counts, groups)}
-    assert rows['c']['chosen'] == 'wide'  # c's own score cannot pick 'special'
-    assert rows['c']['held_out_f1'] == pytest.approx(0.4)
-    assert rows['c']['default_f1'] == pytest.approx(0.5)
-    # Held out a: mean over b and c is 0.7 for defaults, 0.675 for wide, 0.795 for special.
-    assert rows['a']['chosen'] == 'special'
-    assert rows['a']['rest_score'] == pytest.approx((0.6 + 0.99) / 2)
-    assert rows['a']['held_out_f1'] == pytest.approx(0.6)
+    strict, lenient = (p.name for p in bq.PROTOCOLS)
+
+    def both(first, second):
+        return {strict: _metrics(*first), lenient: _metrics(*second)}
+    # under the first protocol 'wide' wins on a and b; under the second 'defaults' do
+    candidates = {'defaults': {'a': both((90, 10, 10), (99, 1, 1)),
+                               'b': both((90, 10, 10), (99, 1, 1)),
+                               'c': both((50, 50, 50), (50, 50, 50))},
+                  'wide': {'a': both((95, 5, 5), (90, 10, 10)),
+                           'b': both((95, 5, 5), (90, 10, 10)),
+                           'c': both((40, 60, 60), (40, 60, 60))}}
+    cv = {p.name: bq.cross_validate(candidates, groups, p) for p in bq.PROTOCOLS}
+    held = {name: {f.held_out: f for f in result.folds} for name, result in cv.items()}
+    assert held[strict]['c'].choice == 'wide' and held[lenient]['c'].choice == 'defaults'
+    assert held[strict]['c'].test_counts == _metrics(40, 60, 60)  # c's own score was not used
+    # pooled held-out = the counts of the folds' choices summed, not a mean of their F1
+    tp = sum(c['tp'] for f in cv[strict].folds for c in f.test_counts)
+    assert cv[strict].pooled['tp'] == tp
+
+
+def test_grid_variants_are_every_combination():
+    grid = bq.grid_variants(['num_bins=16,20', 'ground_threshold_m=0.2,0.25'])
+    assert list(grid) == ['num_bins=16, ground_threshold_m=0.2',
+                          'num_bins=16, ground_threshold_m=0.25',
+                          'num_bins=20, ground_threshold_m=0.2',
+                          'num_bins=20, ground_threshold_m=0.25']
+    assert grid['num_bins=20, ground_threshold_m=0.25'].num_bins == 20
+    assert bq.grid_variants([]) == {}
+    with pytest.raises(ValueError):
+        bq.grid_variants(['num_bins'])
+
+
+def test_quick_and_partial_runs_do_not_write_results():
+    assert bq.parse_args(['--quick']).partial and bq.parse_args(['--real-only']).partial
+    assert bq.parse_args(['--quick']).modes == ['cold']
+    assert not bq.parse_args([]).partial and bq.parse_args([]).modes == list(bq.MODES)
+    assert not bq.parse_args(['--variant', 'x:num_bins=20']).partial
 
 
 def test_parse_variant_types_values_and_rejects_bad_input():
@@ -99,3 +122,17 @@ def test_evaluate_counts_match_the_scoring_in_both_modes():
             assert c['tp'] > 0.8 * frame.truth.sum()
     with pytest.raises(ValueError, match='mode'):
         bq.evaluate(SegmenterParams(), ds.frames, 'warm')
+
+
+def test_a_labelled_scan_is_scored_under_each_protocol():
+    group = common.labelled_group('kitti02')
+    if group is None:
+        pytest.skip('KITTI 02 frame 0 not in the shared data')
+    (frame,) = group.frames
+    (metrics,) = bq.run_frames('gp', group.frames)
+    both = bq.scored(bq.run_masks('gp', group.frames), group.frames)
+    assert both[bq.PROTOCOLS[0].name] == [metrics]  # the default protocol is the first
+    vegetation = int(np.count_nonzero(frame.classes == 70))
+    assert vegetation > 1000
+    evaluated = [both[p.name][0]['evaluated_points'] for p in bq.PROTOCOLS]
+    assert evaluated == [metrics['evaluated_points'], metrics['evaluated_points'] - vegetation]

@@ -13,32 +13,28 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import DATA
 from gp_ground_segmentation import GroundSegmenter, SegmenterParams
-from gp_ground_segmentation.tools.evaluation import (
-    RELLIS_3D, SEMANTIC_KITTI, ground_truth_from_labels, truth_metrics)
-from gp_ground_segmentation.tools.io import read_kitti_bin, read_semantickitti_labels
+from gp_ground_segmentation.tools.evaluation import ground_truth_from_labels, truth_metrics
+from scenes.real_data import labelled_scan
 
-LABELED = DATA / 'labeled'
-# scan -> (bin, ontology, measured precision, measured recall)
+# scan (scenes.real_data) -> (measured precision, measured recall)
 SCANS = {
-    'spvnas': (DATA / 'kitti_sequnknown_spvnas_000000.bin', SEMANTIC_KITTI, 0.978, 0.969),
-    'kitti00_0': (LABELED / 'semantickitti_seq00_000000.bin', SEMANTIC_KITTI, 0.968, 0.982),
-    'kitti00_1': (LABELED / 'semantickitti_seq00_000001.bin', SEMANTIC_KITTI, 0.963, 0.980),
-    'kitti00_2': (LABELED / 'semantickitti_seq00_000002.bin', SEMANTIC_KITTI, 0.954, 0.977),
-    'rellis': (LABELED / 'rellis3d_examplebundle_000001.bin', RELLIS_3D, 0.939, 0.966),
+    'kitti08_000000': (0.978, 0.969),  # the spvnas scan
+    'kitti00_000000': (0.968, 0.982),
+    'kitti00_000001': (0.963, 0.980),
+    'kitti00_000002': (0.954, 0.977),
+    'rellis3d_000001': (0.939, 0.966),
 }
 TOLERANCE = 0.005
 
 
 def load(name):
-    path, ontology, _, _ = SCANS[name]
-    label_path = path.with_suffix('.label')
-    if not (path.exists() and label_path.exists()):
-        pytest.skip(f'real labelled data not found: {path} (../shared/data beside the repo)')
-    points = read_kitti_bin(path)
-    labels = read_semantickitti_labels(label_path, expected_points=len(points))
-    return points, ground_truth_from_labels(labels, ontology=ontology)
+    scan = labelled_scan(name)
+    if not scan.exists():
+        pytest.skip(f'real labelled data not found: {scan.bin_path} (../shared/data beside '
+                    'the repo)')
+    points, classes = scan.read()
+    return points, ground_truth_from_labels(classes, ontology=scan.ontology)
 
 
 def score(points, truth, params=None):
@@ -50,12 +46,12 @@ def score(points, truth, params=None):
 def test_real_scan_precision_and_recall(name):
     points, truth = load(name)
     m = score(points, truth)
-    _, _, precision, recall = SCANS[name]
+    precision, recall = SCANS[name]
     assert m['precision'] >= precision - TOLERANCE, m
     assert m['recall'] >= recall - TOLERANCE, m
 
 
-@pytest.mark.parametrize('name,gain', [('kitti00_0', 0.021), ('rellis', 0.010)])
+@pytest.mark.parametrize('name,gain', [('kitti00_000000', 0.021), ('rellis3d_000001', 0.010)])
 def test_structure_test_earns_its_place(name, gain):
     # measured F1: KITTI 00 frame 0 0.954 -> 0.975, RELLIS 0.943 -> 0.953; the precision gain
     # outweighs the recall it costs (the ground within a few cm of wall and car feet)
@@ -67,25 +63,28 @@ def test_structure_test_earns_its_place(name, gain):
     assert np.isfinite(on['recall']) and on['recall'] > off['recall'] - 0.02
 
 
-# The same scans made to look like other sensors (benchmarks/probe_perturbed.py; measured F1,
+# The same scans made to look like other sensors (benchmarks/probes.py perturbed; measured F1,
 # 2026-11-27): every 2nd / 4th ring = a 32- / 16-beam LiDAR with the same field of view, and a
 # 6 cm voxel filter (first point per voxel). RELLIS-3D is organised: a ring is a row of 2048.
 PERTURBED_F1 = {
-    ('spvnas', 'ring2'): 0.974, ('spvnas', 'ring4'): 0.960, ('spvnas', 'voxel'): 0.962,
-    ('kitti00_0', 'ring2'): 0.969, ('kitti00_0', 'ring4'): 0.956, ('kitti00_0', 'voxel'): 0.964,
-    ('rellis', 'ring2'): 0.946, ('rellis', 'ring4'): 0.946, ('rellis', 'voxel'): 0.936,
+    ('kitti08_000000', 'ring2'): 0.974, ('kitti08_000000', 'ring4'): 0.960,
+    ('kitti08_000000', 'voxel'): 0.962,
+    ('kitti00_000000', 'ring2'): 0.969, ('kitti00_000000', 'ring4'): 0.956,
+    ('kitti00_000000', 'voxel'): 0.964,
+    ('rellis3d_000001', 'ring2'): 0.946, ('rellis3d_000001', 'ring4'): 0.946,
+    ('rellis3d_000001', 'voxel'): 0.936,
 }
 
 
 @pytest.mark.parametrize('name,cloud', sorted(PERTURBED_F1))
 def test_scans_thinned_like_other_sensors(name, cloud):
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'benchmarks'))
-    import probe_perturbed
+    import probes
     points, (truth, evaluated) = load(name)
     if cloud == 'voxel':
-        keep = probe_perturbed.voxel_first(points)
+        keep = probes.voxel_first(points)
     else:
-        ring = probe_perturbed.rings(points, 2048 if name == 'rellis' else None)
+        ring = probes.rings(points, 2048 if name.startswith('rellis') else None)
         keep = ring % int(cloud[-1]) == 0
     m = score(np.ascontiguousarray(points[keep]), (truth[keep], evaluated[keep]))
     assert m['f1'] >= PERTURBED_F1[name, cloud] - TOLERANCE, m

@@ -151,6 +151,13 @@ def _score_frame(row: dict, res, labels_file, classes: tuple) -> None:
         print(f'gp-ground-seg eval: note: {note}', file=sys.stderr)
 
 
+EVAL_DESCRIPTION = ('Segment each input (KITTI .bin, .pcd, BAG:INDEX or a whole bag) with one '
+                    'segmenter (theta warm-starts frame to frame, as in the node; --cold: a fresh '
+                    'one per frame) and print ms per stage and, with --labels, ground precision, '
+                    'recall, F1 and IoU under --protocol per frame and pooled over the frames '
+                    '(TP/FP/FN summed).')
+
+
 def cmd_eval(args) -> int:
     if args.repeat < 1:
         raise CliError('--repeat must be at least 1')
@@ -266,11 +273,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest='command', required=True, parser_class=_Parser)
 
     p = sub.add_parser('eval', help='segment point files / bag frames and print metrics',
-                       description='Segment each input (KITTI .bin, .pcd, BAG:INDEX or a whole '
-                       'bag) with one segmenter (theta warm-starts frame to frame, as in the '
-                       'node; --cold: a fresh one per frame) and print ms per stage and, with '
-                       '--labels, ground precision/recall/F1/IoU under --protocol per frame and '
-                       'pooled over the frames (TP/FP/FN summed).')
+                       description=EVAL_DESCRIPTION)
     p.add_argument('files', nargs='+', metavar='FILE', help='.bin, .pcd, BAG:INDEX or BAG')
     p.add_argument('--labels', nargs='+', metavar='FILE.label',
                    help='.label file(s) (uint32 per point, class in the low 16 bits), one per '

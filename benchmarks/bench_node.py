@@ -777,7 +777,8 @@ def write_results(blocks: dict) -> None:
         if begin in old and end in old else {}
     previous.update(blocks)
     parts = ['## The node over rclpy: latency at 10 Hz and 5x overload (`bench_node.py`)', '',
-             machine_markdown(command_line()),
+             '- Each sub-section below says when, on what and by which command it was measured '
+             '(a run rewrites only the sub-sections of its modes).',
              '- One process: GroundSegmentationNode + a publisher node in a private rclpy '
              'context (Fast DDS, own ROS_DOMAIN_ID, localhost), spun in a background thread by '
              "the executor named in each heading (SingleThreadedExecutor is what the node's "
@@ -854,6 +855,7 @@ def main(argv=None) -> int:
     print(f'{len(msgs)} frames of {msgs[0].width:,} points ({len(msgs[0].data) / MB:.1f} MB '
           f'each); ROS_DOMAIN_ID {os.environ["ROS_DOMAIN_ID"]}', flush=True)
     blocks = {}
+    measured = machine_markdown(command_line()).rstrip('\n')  # heads each sub-section
     executors = ('single', 'multi') if args.executor == 'both' else (args.executor,)
     for executor in executors:
         if args.latency:
@@ -863,13 +865,15 @@ def main(argv=None) -> int:
             key = (f"{'load' if args.subscribers else 'latency'}-"
                    f"{'process' if args.node_process else executor}"
                    f"{'-labeled' if args.labeled and args.subscribers else ''}")
-            blocks[key] = load_markdown(r) if args.subscribers else latency_markdown(r)
+            blocks[key] = (load_markdown(r) if args.subscribers else latency_markdown(r)) \
+                .replace('\n\n', f'\n\n{measured}\n\n', 1)
             print(blocks[key] + '\n', flush=True)
         if args.overload:
             r = run_overload(msgs, args.overload_s, rate_hz=args.overload_hz,
                              slot_period_s=args.slot_sample_ms / 1e3, executor=executor,
                              window=args.overload_window)
-            blocks[f'overload-{executor}'] = overload_markdown(r)
+            blocks[f'overload-{executor}'] = overload_markdown(r).replace(
+                '\n\n', f'\n\n{measured}\n\n', 1)
             print(blocks[f'overload-{executor}'] + '\n', flush=True)
     if not args.no_write:
         write_results(blocks)

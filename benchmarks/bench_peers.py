@@ -426,11 +426,13 @@ def main(argv=None):
     if unavailable:
         parts.append('')
     parts += ['### Summary (median ms per frame; F1 pooled per data set)', '',
-              summary_markdown(results, methods)]
-    for result in results:
-        parts.append(dataset_markdown(result, methods))
-    parts.append(f'Total wall time of the run: {time.perf_counter() - t_start:.0f} s.')
+              summary_markdown(results, methods),
+              '(Per data set: ms p95, points/s, precision and recall, ground share, this '
+              "project's cold first frame and stages, per frame: the script's printed output.)",
+              '', f'Total wall time of the run: {time.perf_counter() - t_start:.0f} s.']
     text = '\n'.join(parts)
+    for result in results:
+        print(dataset_markdown(result, methods))
     print(text)
     if not args.no_write:
         common.update_results_section(args.output, 'bench_peers', text)

@@ -461,17 +461,27 @@ def _comparison_cells(o, t) -> list:
     return [prf(o, 4), prf(t, 4), delta, iou]
 
 
-def all_methods_table(groups, per_method: dict, keys) -> str:
-    """F1 of every method per row under both protocols ('vegetation-nonground / patchworkpp')."""
-    headers = ['group', 'frames'] + [f'{LABELS[k]} F1' for k in keys]
-    rows = []
-    for label, members in row_sets(groups):
-        row = [label, str(sum(len(g.frames) for g in members))]
-        for k in keys:
-            row.append(' / '.join(common.fmt((members_pooled(per_method[k], members, p)
-                                              or {'f1': None})['f1'], 3) for p in PROTOCOLS))
-        rows.append(row)
-    return common.markdown_table(headers, rows)
+def all_methods_table(groups, per_method: dict, keys, rows=None) -> str:
+    """Every method per row: P / R / F1 under the default protocol, then F1 under Patchwork++'s
+    protocol of each method (``rows``: the row sets, default :func:`row_sets`)."""
+    other = PROTOCOLS[1]
+    headers = (['group', 'frames'] + [f'{LABELS[k]} P / R / F1' for k in keys]
+               + [f'{other.name}: F1 ' + ' / '.join(LABELS[k] for k in keys)])
+    out = []
+    for label, members in rows or row_sets(groups):
+        out.append([label, str(sum(len(g.frames) for g in members))]
+                   + [prf(members_pooled(per_method[k], members, DEFAULT_PROTOCOL))
+                      for k in keys]
+                   + [' / '.join(common.fmt((members_pooled(per_method[k], members, other)
+                                             or {'f1': None})['f1'], 3) for k in keys)])
+    return common.markdown_table(headers, out)
+
+
+def pooled_row_sets(groups) -> list:
+    """The rows of the streamed table: each real group and the pooled rows (no single
+    synthetic family)."""
+    return [(label, members) for label, members in row_sets(groups)
+            if label.startswith('**') or members[0].group == 'real']
 
 
 def real_frames_table(groups, cold: dict) -> str:
@@ -592,20 +602,19 @@ def settings_text(groups) -> str:
         'summed over the frames; IoU_g = TP / (TP + FP + FN) (GroundGrid).\n'
         '- Held-out: leave one group out (a KITTI sequence, KITTI 00\'s three frames together; '
         'RELLIS-3D; each synthetic family; `classic`): the candidate with the best mean of '
-        'the other groups\' pooled F1 under that protocol, scored on the held-out group.\n')
+        'the other groups\' pooled F1 under that protocol, scored on the held-out group; the '
+        'candidates are the defaults and the `--variant` / `--grid` sets (the `--ablation` '
+        'switches are reported, never chosen).\n')
 
 
 def data_text(groups) -> str:
-    """A details block: every group and its frames' sizes."""
-    lines = ['<details><summary>Data: groups and frames</summary>', '']
-    for g in groups:
-        lines.append(f'- `{g.name}` ({g.group}, {len(g.frames)} frame(s), '
-                     f'{g.points_per_frame:,.0f} points per frame): {g.description}')
-    lines += ['', 'Synthetic family scans: 1024 firings per revolution, HDL-64E-like beams unless '
-              'the family says otherwise, range noise 0.02 m, exact per-point truth '
-              '(`scenes.synthetic.family_scan(family, seed)`; `family_scene(family, seed)'
-              '.description` says what each member shows).', '', '</details>']
-    return '\n'.join(lines)
+    """One paragraph: every group, its frame count and points per frame."""
+    items = ', '.join(f'`{g.name}` ({len(g.frames)} x {g.points_per_frame / 1000:,.0f}k)'
+                      for g in groups)
+    return (f'- Groups (frames x points per frame): {items}. Synthetic families: 1024 firings '
+            'per revolution, HDL-64E-like beams unless the family says otherwise, range noise '
+            '0.02 m, exact per-point truth (`scenes.synthetic.family_scan(family, seed)`; '
+            '`family_scene(family, seed).description` says what each member shows).')
 
 
 def parse_args(argv=None):
@@ -626,8 +635,8 @@ def parse_args(argv=None):
     ap.add_argument('--grid', nargs='*', default=[], metavar='NAME=V1,V2',
                     help='variants of every combination of these values (a joint grid)')
     ap.add_argument('--ablation', action='store_true',
-                    help='the one-at-a-time switches of ablation_variants() as variants, and '
-                         'the streamed theta-learning variants')
+                    help='the one-at-a-time switches of ablation_variants() and the streamed '
+                         'theta-learning variants (reported, not held-out candidates)')
     ap.add_argument('--timing-rounds', type=int, default=None,
                     help='timed rounds over the KITTI scans (default 10, --quick 2)')
     ap.add_argument('--output', type=Path, default=RESULTS)
@@ -649,8 +658,7 @@ def parse_args(argv=None):
         args.variants.update(grid_variants(args.grid))
     except (ValueError, TypeError) as exc:
         ap.error(str(exc))
-    if args.ablation:
-        args.variants.update(ablation_variants())
+    args.ablations = ablation_variants() if args.ablation else {}
     args.families = [f.strip() for f in args.families.split(',') if f.strip()] or None
     # only the full record of the defaults goes into RESULTS.md
     args.partial = (args.quick or args.real_only or args.families is not None
@@ -659,34 +667,41 @@ def parse_args(argv=None):
     return args
 
 
-def report(args, groups, results, unavailable, timing, variant_results, cv_by_protocol) -> str:
-    """The markdown of the run (the RESULTS.md section)."""
+def report(args, groups, results, unavailable, timing, candidates, cv_by_protocol,
+           ablations) -> str:
+    """The markdown of the run (the RESULTS.md section). ``candidates``: the defaults and the
+    variants asked for, the held-out choice is made among them; ``ablations``: the defaults
+    and the one-at-a-time switches (``--ablation``), reported but never a candidate."""
     cold = results['cold']
     keys = [k for k in args.keys if k not in unavailable]
-    candidates = len(variant_results)
     parts = ['## Ground quality (bench_quality.py)', '',
-             common.machine_markdown(common.command_line()), settings_text(groups)]
+             common.machine_markdown(common.command_line()), settings_text(groups),
+             data_text(groups)]
     parts += [f'- **{LABELS[k]} not run**: {why}' for k, why in unavailable.items()]
-    parts += ['', data_text(groups), '',
-              '### Both protocols, cold: this project vs Patchwork++', '',
-              both_protocols_table(groups, cold, cv_by_protocol, candidates), '',
-              losses_text(groups, cold)]
-    for mode in args.modes:
-        parts += ['', f'### Every method, {mode} ({MODE_TEXT[mode]}): F1 '
-                  f'{" / ".join(p.name for p in PROTOCOLS)}', '',
-                  all_methods_table(groups, results[mode], keys)]
+    parts += ['', '### Both protocols, cold: this project vs Patchwork++', '',
+              both_protocols_table(groups, cold, cv_by_protocol, len(candidates)), '',
+              losses_text(groups, cold), '',
+              f'### Every method, cold ({MODE_TEXT["cold"]})', '',
+              all_methods_table(groups, cold, keys)]
+    if 'streamed' in results:
+        parts += ['', f'### Every method, streamed ({MODE_TEXT["streamed"]})', '',
+                  all_methods_table(groups, results['streamed'], keys, pooled_row_sets(groups))]
     if timing:
         parts += ['', f'### Time on the {timing["frames"]} KITTI scans ({timing["points"]:,.0f} '
                   f'points on average), streamed, {timing["rounds"]} rounds', '',
                   timing_table(timing, keys)]
-    if candidates > 1:
+    if len(candidates) > 1:
         for p in PROTOCOLS:
             parts += ['', f'### Variants of this project (cold; {p.name}; pooled F1 per group, '
-                      'change vs defaults)', '', variant_table(groups, variant_results, p)]
+                      'change vs defaults)', '', variant_table(groups, candidates, p)]
         parts += ['', '### Leave-one-group-out choice among the defaults and the variants', '',
-                  cv_table(cv_by_protocol, variant_results)]
-    if args.ablation and 'streamed' in args.modes:
-        streamed = {'defaults': results['streamed']['gp'],
+                  cv_table(cv_by_protocol, candidates)]
+    if ablations:
+        parts += ['', f'### Ablation: one switch at a time (cold; {DEFAULT_PROTOCOL.name}; '
+                  'pooled F1 per group, change vs defaults)', '',
+                  variant_table(groups, ablations, DEFAULT_PROTOCOL)]
+        streamed = {'defaults': (results['streamed']['gp'] if 'streamed' in results else
+                                 run_variants(groups, {'d': SegmenterParams()}, 'streamed')['d']),
                     **run_variants(groups, theta_stream_variants(), 'streamed')}
         parts += ['', '### theta learning in a stream (streamed; pooled F1 per group, change '
                   'vs defaults)', '', variant_table(groups, streamed, DEFAULT_PROTOCOL)]
@@ -711,10 +726,12 @@ def main(argv=None) -> int:
         return 1
     keys = [k for k in args.keys if k not in unavailable]
     timing = time_kitti(groups, keys, args.timing_rounds)
-    variant_results = {'defaults': results['cold']['gp'],
-                       **run_variants(groups, args.variants)}
-    cv_by_protocol = {p.name: cross_validate(variant_results, groups, p) for p in PROTOCOLS}
-    text = report(args, groups, results, unavailable, timing, variant_results, cv_by_protocol)
+    defaults = {'defaults': results['cold']['gp']}
+    candidates = {**defaults, **run_variants(groups, args.variants)}
+    ablations = {**defaults, **run_variants(groups, args.ablations)} if args.ablations else {}
+    cv_by_protocol = {p.name: cross_validate(candidates, groups, p) for p in PROTOCOLS}
+    text = report(args, groups, results, unavailable, timing, candidates, cv_by_protocol,
+                  ablations)
     text += f'\nTotal wall time of the run: {time.perf_counter() - t_start:.0f} s.\n'
     print(text)
     if args.partial:

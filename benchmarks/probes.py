@@ -13,7 +13,7 @@ project's parameters changed over the defaults: not the record of the defaults).
 ``gp_ground_segmentation.tools.evaluation`` under the default protocol (vegetation non-ground);
 Patchwork++ with bench_quality.py's settings (its defaults plus the mount height).
 
-``errors`` (~30 s): where the defaults' errors lie on every labelled real scan (cold):
+``errors`` (~35 s): where the defaults' errors lie on every labelled real scan (cold):
 
 - missed ground (FN) turned obstacle by the structure test (``details.structure_feet``) or by
   the height test (z - z_hat above the point's threshold), with the classes they carry;
@@ -27,20 +27,20 @@ Patchwork++ with bench_quality.py's settings (its defaults plus the mount height
   not behind a wall), wrongly against rightly condemned feet;
 - what rules on these features would trade as post-processes on the labels.
 
-``perturbed`` (~5 min): the labelled scans made to look like other sensors and pipelines, so
+``perturbed`` (~10 s): the labelled scans made to look like other sensors and pipelines, so
 that their labels still hold: as recorded; a 6 cm voxel grid (first point per voxel); every 2nd
 / 4th ring (a 32- / 16-beam sensor with the same field of view; the ring of a point is its row
 in RELLIS-3D's organised 64 x 2048 cloud and, in a KITTI scan stored ring after ring, the
 number of azimuth wraps before it); half the returns (seed 0); 3 cm range noise along the ray
 (seed 0). Pooled P / R / F1 per data set, this project vs Patchwork++, cold.
 
-``nonrepetitive`` (~10 s): scans without rings, a stand-in for a non-repetitive scanning LiDAR
+``nonrepetitive`` (~6 s): scans without rings, a stand-in for a non-repetitive scanning LiDAR
 (Livox-like): the classic scenes ``flat``, ``ramp15``, ``hill``, ``mixed`` and ``onslope15``
 ray-cast from 1.73 m along 280 random elevations x 1,200 azimuths, a random ``POINTS_PER_SCAN``
 of the returns kept, through a forward 70 deg window and over 360 deg; a random direction
 pattern is not a model of a real rosette.
 
-``high-mount`` (~30 s): the classic ``flat``, ``hill``, ``ramp15`` and ``mixed`` scenes from
+``high-mount`` (~5 s): the classic ``flat``, ``hill``, ``ramp15`` and ``mixed`` scenes from
 0.4, 1.73, 3.0 and 4.5 m mounts (a truck, a mast): F1 vs Patchwork++ given the height, this
 project's missed ground split by the stage that dropped it (structure or height test), and the
 training candidates rejected as outliers.

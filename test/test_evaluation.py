@@ -129,3 +129,27 @@ def test_protocols_by_name_and_their_class_lists():
     assert PATCHWORKPP.classes(RELLIS_3D) == ((1, 3, 10, 23, 31, 33), (0, 19))
     with pytest.raises(TypeError):  # the protocol is a keyword, never a stray positional bool
         ground_metrics(np.zeros(1, bool), np.zeros(1, np.uint32), False)
+
+
+def test_command_line_classes_follow_dataset_protocol_and_overrides():
+    import argparse
+
+    from gp_ground_segmentation.tools.errors import CliError
+    from gp_ground_segmentation.tools.options import add_label_class_arguments, label_classes
+    parser = argparse.ArgumentParser()
+    add_label_class_arguments(parser)
+
+    def classes(*argv):
+        return label_classes(parser.parse_args(list(argv)))
+    assert classes() == (GROUND_CLASSES, IGNORED_CLASSES)
+    assert classes('--protocol', 'patchworkpp') == (GROUND_CLASSES, (0, 1, 70))
+    assert classes('--vegetation-ground') == ((40, 44, 48, 49, 60, 70, 72), (0, 1))
+    assert classes('--dataset', 'rellis3d', '--protocol', 'patchworkpp') == (
+        (1, 3, 10, 23, 31, 33), (0, 19))
+    # explicit lists win over what the protocol gives
+    assert classes('--protocol', 'patchworkpp', '--ignore-classes', '0') == (GROUND_CLASSES, (0,))
+    assert classes('--ground-classes', '72, 40') == ((40, 72), IGNORED_CLASSES)
+    with pytest.raises(CliError, match='comma-separated integers'):
+        classes('--ground-classes', '40,road')
+    with pytest.raises(SystemExit):  # one protocol only
+        parser.parse_args(['--protocol', 'patchworkpp', '--vegetation-ground'])

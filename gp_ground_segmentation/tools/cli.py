@@ -189,6 +189,7 @@ def cmd_eval(args) -> int:
     pooled = pooled_metrics([row['metrics'] for row in frames]) if labels_files else None
     if pooled is not None:
         pooled = {key: _nan_to_none(v) for key, v in pooled.items()}
+        pooled['evaluated_points'] = sum(row['metrics']['evaluated_points'] for row in frames)
     if args.json:
         print(json.dumps({'frames': frames, 'pooled': pooled, 'params_file': args.params,
                           'cold': args.cold, 'protocol': args.protocol, 'dataset': args.dataset,

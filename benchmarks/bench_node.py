@@ -796,7 +796,7 @@ def write_results(blocks: dict) -> None:
     print(f'wrote section {SECTION!r} of {RESULTS}')
 
 
-def main(argv=None) -> int:
+def argument_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument('--latency', action='store_true', help='10 Hz latency run')
@@ -825,6 +825,11 @@ def main(argv=None) -> int:
     ap.add_argument('--as-subscriber', action='store_true', help=argparse.SUPPRESS)
     ap.add_argument('--as-node', nargs=3, help=argparse.SUPPRESS)
     ap.add_argument('--no-write', action='store_true', help='print only, keep RESULTS.md')
+    return ap
+
+
+def main(argv=None) -> int:
+    ap = argument_parser()
     args = ap.parse_args(argv)
     if args.as_subscriber:
         return subscriber_main(subscriber_topics(args.labeled))

@@ -1,8 +1,8 @@
 # SPDX-License-Identifier: Apache-2.0
 """Offline bag replay: read PointCloud2 frames from a bag (or point files), segment them with the
 node's own pipeline, and write a ROS 2 bag with ``<topic>/ground``, ``<topic>/obstacles``,
-``<topic>/ground_surface`` (when ``publish_ground_surface`` is on, the default) and
-``/diagnostics``.
+``<topic>/ground_surface`` (when ``publish_ground_surface`` is on, the default),
+``<topic>/labeled`` (when asked for) and ``/diagnostics``.
 
 Reading and writing use ``rosbags`` (AnyReader: ROS 2 mcap/sqlite3 directories or bare
 ``.mcap``/``.db3`` files, ROS 1 ``.bag``; rosbag2 Writer), but messages are (de)serialised with
@@ -376,10 +376,10 @@ class ReplaySummary:
             lines.append(f'  theta range   {rng}')
         if self.stage_ms:
             lines.append(f'  {"stage":<14}{"p50 ms":>9}{"p95 ms":>9}{"max ms":>9}'
-                         '   (segment = core total; surface = part of encode; total = '
+                         '   (segment = core total; surface, labeled = parts of encode; total = '
                          'decode+segment+encode; frame = total+write)')
             order = ('decode', 'grid', 'lines', 'gp_fit', 'predict', 'label', 'structure',
-                     'segment', 'encode', 'surface', 'total', 'write', 'frame')
+                     'segment', 'encode', 'surface', 'labeled', 'total', 'write', 'frame')
             names = sorted(self.stage_ms, key=lambda k: (order.index(k) if k in order
                                                          else len(order), k))
             for name in names:
@@ -517,7 +517,7 @@ def replay(inputs: Sequence, out_bag, *, topic: Optional[str] = None,
            params_file: Optional[str] = None, storage: str = 'mcap', force: bool = False,
            max_frames: Optional[int] = None, progress: Optional[Progress] = None,
            log=None, output_prefix: Optional[str] = None,
-           frame_id: str = SYNTHETIC_FRAME_ID) -> ReplaySummary:
+           frame_id: str = SYNTHETIC_FRAME_ID, labeled: bool = False) -> ReplaySummary:
     """Segment every PointCloud2 of ``inputs`` on ``topic`` and write the result bag ``out_bag``.
 
     ``inputs``: one bag (directory, .mcap, .db3, or ROS 1 .bag files) or point files / a directory
@@ -525,7 +525,9 @@ def replay(inputs: Sequence, out_bag, *, topic: Optional[str] = None,
     ``<output_prefix>/ground``, ``<output_prefix>/obstacles`` (input header and all fields
     kept, points byte for byte, plus a ``height_above_ground`` field when the parameter file's
     ``add_height_above_ground_field`` is true), ``<output_prefix>/ground_surface`` (the GP ground
-    surface, unless ``publish_ground_surface`` is false) and ``/diagnostics`` (one
+    surface, unless ``publish_ground_surface`` is false), ``<output_prefix>/labeled`` with
+    ``labeled`` (the node's ``labeled`` topic: every valid point's bytes plus ``ground`` and
+    ``height_above_ground``, in input order; ``labels.labeled_points``) and ``/diagnostics`` (one
     DiagnosticArray per frame), each written at the input message's bag time.
     ``output_prefix`` defaults to the input topic, so the outputs sit beside their input in a
     bag that may hold several clouds; ``''`` gives ``/ground``, ``/obstacles`` and
@@ -543,6 +545,7 @@ def replay(inputs: Sequence, out_bag, *, topic: Optional[str] = None,
     window = ProcessingWindow(int(node_params.get('diagnostics_window', 50)))
     budget_ms = float(node_params.get('processing_budget_ms', 100.0))
     outputs = {name: bool(node_params[name]) for name in pipeline.OUTPUT_SWITCHES}
+    outputs['labeled'] = labeled  # no node parameter: the node builds it for its subscribers
     summary = ReplaySummary(output=str(out))
     t_start = time.perf_counter()
     output_prefix = _output_prefix(output_prefix)
@@ -559,8 +562,7 @@ def replay(inputs: Sequence, out_bag, *, topic: Optional[str] = None,
         try:
             with Writer(tmp, version=9, storage_plugin=plugin) as writer:
                 conns = _output_connections(
-                    writer, source.topic if output_prefix is None else output_prefix,
-                    outputs['publish_ground_surface'])
+                    writer, source.topic if output_prefix is None else output_prefix, outputs)
                 for frame in source:
                     _replay_frame(frame, segmenter, writer, conns, summary, window, budget_ms,
                                   outputs)
@@ -589,22 +591,29 @@ def _output_prefix(output_prefix: Optional[str]) -> Optional[str]:
     return normalize_topic(output_prefix, '--output-prefix', strict=True)
 
 
-def _output_connections(writer, prefix: str, surface: bool) -> tuple:
-    """The writer's (ground, obstacles, diagnostics, surface or None) connections."""
+# FrameOutput attribute -> output topic below the prefix, and the switch (a process_cloud
+# keyword) that adds it; ground and obstacles are always written
+CLOUD_OUTPUTS = (('ground', 'ground', None), ('obstacles', 'obstacles', None),
+                 ('surface', 'ground_surface', 'publish_ground_surface'),
+                 ('labeled', 'labeled', 'labeled'))
+
+
+def _output_connections(writer, prefix: str, outputs: dict) -> tuple:
+    """The writer's ({FrameOutput attribute: connection} of the clouds ``outputs`` (the
+    process_cloud keywords) switch on, diagnostics connection)."""
     typestore = get_typestore(Stores.ROS2_JAZZY)
-    ground = writer.add_connection(f'{prefix}/ground', POINTCLOUD2, typestore=typestore)
-    obstacles = writer.add_connection(f'{prefix}/obstacles', POINTCLOUD2, typestore=typestore)
+    clouds = {attribute: writer.add_connection(f'{prefix}/{topic}', POINTCLOUD2,
+                                               typestore=typestore)
+              for attribute, topic, switch in CLOUD_OUTPUTS if switch is None or outputs[switch]}
     diagnostics = writer.add_connection(DIAGNOSTICS_TOPIC, DIAGNOSTIC_ARRAY, typestore=typestore)
-    ground_surface = (writer.add_connection(f'{prefix}/ground_surface', POINTCLOUD2,
-                                            typestore=typestore) if surface else None)
-    return ground, obstacles, diagnostics, ground_surface
+    return clouds, diagnostics
 
 
 def _replay_frame(frame, segmenter, writer, conns, summary, window, budget_ms,
                   outputs) -> None:
     """Segment one frame, write its clouds and a DiagnosticArray built like the node's;
     ``outputs``: the node's output switches (keywords of ``process_cloud``)."""
-    conn_ground, conn_obst, conn_diag, conn_surface = conns
+    clouds, conn_diag = conns
     msg = frame.msg
     frame_id = msg.header.frame_id
     t0 = time.perf_counter()
@@ -622,10 +631,10 @@ def _replay_frame(frame, segmenter, writer, conns, summary, window, budget_ms,
     t1 = time.perf_counter()
     if out is not None:
         window.record_frame(out, frame_id)
-        writer.write(conn_ground, frame.timestamp_ns, serialize_message(out.ground))
-        writer.write(conn_obst, frame.timestamp_ns, serialize_message(out.obstacles))
-        if conn_surface is not None and out.surface is not None:
-            writer.write(conn_surface, frame.timestamp_ns, serialize_message(out.surface))
+        for attribute, connection in clouds.items():
+            cloud = getattr(out, attribute)
+            if cloud is not None:  # no surface when the segmenter gave none
+                writer.write(connection, frame.timestamp_ns, serialize_message(cloud))
     status = diagnostics_status(window, budget_ms=budget_ms, stale_after_s=None, now=bag_time_s,
                                 extra={'source': 'gp-ground-seg replay', 'frame_index':
                                        frame.index})

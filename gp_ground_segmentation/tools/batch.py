@@ -34,6 +34,7 @@ import numpy as np
 from .bag import FrameSource, Progress, load_params, replay
 from .engine import add_engine_arguments, open_engine, peak_rss_mb
 from .errors import EXPECTED_ERRORS, CliError, one_line
+from .options import add_labeled_option
 
 PROGRESS_TOPIC = 'gp-ground-seg-batch-progress'
 BAG_SUFFIXES = ('.mcap', '.db3', '.bag')
@@ -79,7 +80,8 @@ class _TaskProgress:
 
 
 def replay_one(input_path: str, out_bag: str, *, label: str, topic: Optional[str],
-               params_file: Optional[str], storage: str, force: bool, sink: Callable) -> dict:
+               params_file: Optional[str], storage: str, force: bool, sink: Callable,
+               labeled: bool = False) -> dict:
     """One task: replay ``input_path`` into ``out_bag``; a summary row for input ``label`` (the
     path as the user gave it). Never raises for bad input: the error is the row's, in replay's
     one-line wording."""
@@ -87,7 +89,7 @@ def replay_one(input_path: str, out_bag: str, *, label: str, topic: Optional[str
     t0 = time.perf_counter()
     try:
         summary = replay([input_path], out_bag, topic=topic, params_file=params_file,
-                         storage=storage, force=force,
+                         storage=storage, force=force, labeled=labeled,
                          progress=_TaskProgress(label, sink))
     except EXPECTED_ERRORS as err:
         row.update(status='failed', error=one_line(err), wall_s=time.perf_counter() - t0)
@@ -175,7 +177,8 @@ def task_line(row: dict) -> str:
 
 def run_batch(inputs: Sequence[str], out_dir, engine, *, topic: Optional[str] = None,
               params_file: Optional[str] = None, storage: str = 'mcap', force: bool = False,
-              report: Optional[Callable] = None, progress_stream=None) -> BatchResult:
+              report: Optional[Callable] = None, progress_stream=None,
+              labeled: bool = False) -> BatchResult:
     """Replay every input into ``out_dir/<name>/`` on ``engine``; write the summaries.
 
     ``report(row)`` is called as each task finishes (and for each skipped input).
@@ -197,7 +200,7 @@ def run_batch(inputs: Sequence[str], out_dir, engine, *, topic: Optional[str] = 
     rows, todo = _skip_complete(inputs, names, out_dir, force, report)
     progress = _BatchProgress(engine, todo, topic, progress_stream)
     task = {'topic': topic, 'params_file': params_file, 'storage': storage, 'force': force,
-            'sink': engine.progress_sink(PROGRESS_TOPIC)}
+            'labeled': labeled, 'sink': engine.progress_sink(PROGRESS_TOPIC)}
     interrupted = False
     try:
         _run_tasks(engine, todo, task, rows, progress, report)
@@ -217,7 +220,7 @@ def run_batch(inputs: Sequence[str], out_dir, engine, *, topic: Optional[str] = 
                              sum(r.get('frames', 0) or 0 for r in ordered if r['status'] == 'ok'),
                              rss, interrupted)
         write_summary(out_dir, result, {'params_file': params_file, 'topic': topic,
-                                        'storage': storage})
+                                        'storage': storage, 'labeled': labeled})
     return result
 
 
@@ -331,6 +334,7 @@ def add_parser(sub) -> None:
     p.add_argument('--topic', default=None, help='input PointCloud2 topic (as for replay)')
     p.add_argument('--storage', choices=('mcap', 'sqlite3'), default='mcap')
     p.add_argument('--force', action='store_true', help='redo inputs whose output exists')
+    add_labeled_option(p)
     p.set_defaults(func=cmd_batch)
 
 
@@ -342,6 +346,7 @@ def cmd_batch(args) -> int:
                   f'{engine.startup_s:.1f} s', file=sys.stderr)
         result = run_batch(args.inputs, out_dir, engine, topic=args.topic,
                            params_file=args.params, storage=args.storage, force=args.force,
+                           labeled=args.labeled,
                            report=lambda row: print(task_line(row), flush=True))
     print_result(result, out_dir)
     return 1 if result.failed else 0

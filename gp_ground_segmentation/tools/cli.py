@@ -43,7 +43,8 @@ from .bag import (FrameSource, is_point_file, load_segmenter_params, read_frame,
 from .errors import EXIT_ERROR, EXPECTED_ERRORS, CliError, one_line
 from .evaluation import labelled_ground_truth, pooled_metrics, truth_metrics
 from .io import read_semantickitti_labels
-from .options import add_frame_id_option, add_label_class_arguments, label_classes, no_ground_note
+from .options import (add_frame_id_option, add_label_class_arguments, add_labeled_option,
+                      label_classes, no_ground_note)
 from .plot import plot_frame
 
 
@@ -212,6 +213,7 @@ def cmd_replay(args) -> int:
     summary = replay(inputs, out, topic=args.topic, params_file=args.params,
                      storage=args.storage, force=args.force, max_frames=args.max_frames,
                      output_prefix=args.output_prefix, frame_id=args.frame_id,
+                     labeled=args.labeled,
                      log=lambda text: print(f'gp-ground-seg replay: note: {text}',
                                             file=sys.stderr))
     print(summary.table())
@@ -313,6 +315,7 @@ def build_parser() -> argparse.ArgumentParser:
                    '/ground, /obstacles and /ground_surface like the node in the root '
                    'namespace)')
     add_frame_id_option(p)
+    add_labeled_option(p)
     p.set_defaults(func=cmd_replay)
 
     p = sub.add_parser('plot', help='plot one frame (side view of a segment + bird\'s-eye view)',

@@ -4,7 +4,8 @@
 * which labels are ground (``--dataset``, ``--protocol``, ``--ground-classes``,
   ``--ignore-classes``; eval, plot, tune), resolved by :func:`label_classes` with the ontologies
   and protocols of :mod:`.evaluation`;
-* the frame id of clouds made from point files (``--frame-id``; replay, play).
+* the frame id of clouds made from point files (``--frame-id``; replay, play);
+* the labelled cloud among the outputs (``--labeled``; replay, batch).
 """
 
 from __future__ import annotations
@@ -70,3 +71,12 @@ def add_frame_id_option(parser) -> None:
     parser.add_argument('--frame-id', default=SYNTHETIC_FRAME_ID,
                         help='header.frame_id of clouds made from .bin/.pcd files (default '
                         f'{SYNTHETIC_FRAME_ID})')
+
+
+def add_labeled_option(parser) -> None:
+    """--labeled: also write <prefix>/labeled, the node's labeled topic."""
+    parser.add_argument('--labeled', action='store_true',
+                        help='also write PREFIX/labeled, the node\'s labeled cloud: every valid '
+                        'point in input order, its fields byte for byte plus ground (uint8, 1 = '
+                        'ground) and height_above_ground (float32, m); the rows '
+                        'gp_ground_segmentation.labels.labeled_points returns (default off)')

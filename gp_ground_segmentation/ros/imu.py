@@ -30,7 +30,9 @@ pitch of R_y(pitch) R_x(roll), which levels the cloud.
 nearest a cloud's header stamp, with its age |cloud stamp - IMU stamp| (stamps only, never the
 wall clock), or the static pose with a one-line note when no sample lies within
 ``max_age_s``. It is thread-safe: the node adds samples from its executor and reads from its
-worker thread. ``frame_params`` turns the pose into the frame's SegmenterParams.
+worker thread. ``frame_params`` turns the pose into the frame's SegmenterParams, and
+``frame_pose`` does both for a cloud stamp: the node and ``replay --imu-topic`` level each
+frame with it.
 """
 
 from __future__ import annotations
@@ -45,8 +47,9 @@ import numpy as np
 
 from ..core.params import SegmenterParams
 
-__all__ = ['GravityTracker', 'ImuPose', 'frame_params', 'rotation_from_rpy',
-           'roll_pitch_from_up', 'up_from_orientation', 'up_from_acceleration', 'stamp_seconds']
+__all__ = ['GravityTracker', 'ImuPose', 'frame_params', 'frame_pose', 'imu_sample',
+           'rotation_from_rpy', 'roll_pitch_from_up', 'stamp_seconds', 'tracker_settings',
+           'up_from_orientation', 'up_from_acceleration']
 
 _MIN_ACCEL = 1e-6  # m/s^2: below this an acceleration has no direction (free fall, zeros)
 
@@ -115,6 +118,34 @@ def frame_params(static: SegmenterParams, pose: ImuPose) -> SegmenterParams:
     return static.replace(sensor_roll_rad=pose.roll, sensor_pitch_rad=pose.pitch)
 
 
+def frame_pose(tracker: 'GravityTracker', static: SegmenterParams, stamp) -> tuple:
+    """(ImuPose, SegmenterParams) of the cloud stamped ``stamp`` (builtin_interfaces/Time):
+    ``tracker``'s pose at the stamp, the static roll and pitch of ``static`` when no IMU sample
+    is near, and :func:`frame_params` of it. The node levels each frame with it, and so does
+    ``gp-ground-seg replay --imu-topic``."""
+    pose = tracker.pose_at(stamp_seconds(stamp), static.sensor_roll_rad, static.sensor_pitch_rad)
+    return pose, frame_params(static, pose)
+
+
+def tracker_settings(node_values: dict) -> dict:
+    """The :meth:`GravityTracker.configure` keywords of the node's ``imu_*`` parameter values
+    (``config.NODE_PARAMS``: imu_lidar_roll/pitch/yaw_rad, imu_max_age_s,
+    imu_accel_time_constant_s)."""
+    return {'lidar_in_imu': tuple(float(node_values[f'imu_lidar_{a}_rad'])
+                                  for a in ('roll', 'pitch', 'yaw')),
+            'max_age_s': float(node_values['imu_max_age_s']),
+            'accel_time_constant_s': float(node_values['imu_accel_time_constant_s'])}
+
+
+def imu_sample(msg) -> tuple:
+    """(stamp s, orientation (x, y, z, w) or None, linear acceleration (x, y, z) m/s^2) of a
+    sensor_msgs/Imu-like message: no orientation when ``orientation_covariance[0] == -1``."""
+    q, a = msg.orientation, msg.linear_acceleration
+    has_orientation = float(msg.orientation_covariance[0]) != -1.0
+    return (stamp_seconds(msg.header.stamp), (q.x, q.y, q.z, q.w) if has_orientation else None,
+            (a.x, a.y, a.z))
+
+
 class GravityTracker:
     """Buffer of IMU "up" vectors by stamp; the cloud frame's roll and pitch at a stamp.
 
@@ -154,10 +185,7 @@ class GravityTracker:
     def add_message(self, msg) -> bool:
         """Add a sensor_msgs/Imu-like message (module docstring); False when it carries no
         usable direction (counted in ``samples_unusable``)."""
-        q, a = msg.orientation, msg.linear_acceleration
-        has_orientation = float(msg.orientation_covariance[0]) != -1.0
-        return self.add(stamp_seconds(msg.header.stamp), (q.x, q.y, q.z, q.w) if
-                        has_orientation else None, (a.x, a.y, a.z))
+        return self.add(*imu_sample(msg))
 
     def add(self, stamp_s: float, orientation_xyzw=None, acceleration=None) -> bool:
         """Add one sample: its stamp (s), the orientation quaternion (x, y, z, w) or None when

@@ -79,7 +79,7 @@ from .config import (NODE_NAME, NODE_PARAMS, ParameterConfigError, all_param_spe
                      check_param_value, is_ros_builtin, split_params)
 from .diagnostics import ProcessingWindow, diagnostics_array, diagnostics_status
 from .entry import one_line as _one_line, run_node
-from .imu import GravityTracker, frame_params, stamp_seconds
+from .imu import GravityTracker, frame_pose, stamp_seconds, tracker_settings
 from ..core.params import SegmenterParams
 from .pipeline import (OUTPUT_SWITCHES, add_labeled, add_surface, process_cloud,
                        warm_up as warm_up_outputs)
@@ -256,11 +256,7 @@ class SegmentationNodeBase:
                                                                  self._on_diag_timer))
 
     def _configure_gravity(self, node_values: dict) -> None:
-        self._gravity.configure(
-            lidar_in_imu=tuple(node_values[f'imu_lidar_{a}_rad'] for a in ('roll', 'pitch',
-                                                                           'yaw')),
-            max_age_s=node_values['imu_max_age_s'],
-            accel_time_constant_s=node_values['imu_accel_time_constant_s'])
+        self._gravity.configure(**tracker_settings(node_values))
 
     def _make_publisher(self, msg_type, topic, qos, **kwargs):
         """A publisher that ``_release`` destroys (the lifecycle variant makes lifecycle ones)."""
@@ -432,9 +428,7 @@ class SegmentationNodeBase:
             return None
         static = self._static_params
         try:
-            pose = gravity.pose_at(stamp_seconds(msg.header.stamp), static.sensor_roll_rad,
-                                   static.sensor_pitch_rad)
-            params = frame_params(static, pose)
+            pose, params = frame_pose(gravity, static, msg.header.stamp)
             if params != self._segmenter.params:
                 self._use_params(params)
         except Exception as exc:  # the IMU must never cost the frame: the static pose

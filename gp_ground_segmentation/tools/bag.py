@@ -38,13 +38,14 @@ from rosbags.typesys import Stores, get_typestore
 from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import Header
 
-from ..core import gp_compiled
+from ..core import compiled, gp_compiled
 from ..core.params import SegmenterParams
 from ..core.segmenter import GroundSegmenter
 from ..ros import pipeline
 from ..ros.cloud import CloudFormatError, make_cloud, set_data
 from ..ros.config import load_params_file, node_param_defaults
 from ..ros.diagnostics import ProcessingWindow, diagnostics_array, diagnostics_status
+from .bag_imu import BagGravity
 from .errors import BagError, one_line
 from .io import PointFileError, read_points_file
 
@@ -354,9 +355,28 @@ class ReplaySummary:
     output: str = ''
     topic: str = ''
     note: str = ''
+    # s of warm_up_before_timing: numba's kernels compiled or loaded before the first frame,
+    # so that no frame's timing holds a compilation
+    warm_up_s: float = float('nan')
+    imu: Optional[dict] = None  # bag_imu.BagGravity.summary() with --imu-topic
 
     def add_stage(self, name: str, ms: float) -> None:
         self.stage_ms.setdefault(name, []).append(float(ms))
+
+    def add_frame(self, out, points: int) -> None:
+        """Count one segmented frame (a pipeline.FrameOutput of ``points`` input points)."""
+        res = out.result
+        n_valid = int(np.count_nonzero(res.valid_mask))
+        n_ground = int(np.count_nonzero(res.ground_mask))
+        self.frames += 1
+        self.points += points
+        self.valid += n_valid
+        self.ground += n_ground
+        self.obstacles += n_valid - n_ground
+        self.invalid += res.num_invalid
+        self.thetas.append(tuple(float(v) for v in res.hyperparameters))
+        for k, v in pipeline.frame_timings(out).items():  # the node's diagnostics' stage names
+            self.add_stage(k, v)
 
     def table(self) -> str:
         """The closing summary as a fixed-width text table."""
@@ -368,6 +388,10 @@ class ReplaySummary:
                  f'  points        {self.points} in, {self.valid} valid, {self.invalid} invalid',
                  f'  ground share  {share:.3f} of valid points ({self.ground} ground, '
                  f'{self.obstacles} obstacles)']
+        lines += self._imu_lines()
+        if math.isfinite(self.warm_up_s):
+            lines.append(f'  warm-up       {self.warm_up_s:.1f} s before the first frame (numba '
+                         'kernels compiled, or loaded from its cache; not in the timings below)')
         if self.thetas:
             th = np.array(self.thetas, dtype=float)
             names = ('sigma_f [m]', 'gain a', 'sigma_n [m]')
@@ -390,6 +414,17 @@ class ReplaySummary:
         for reason in self.skipped_reasons[:5]:
             lines.append(f'  skipped: {reason}')
         return '\n'.join(lines)
+
+    def _imu_lines(self) -> list:
+        """The --imu-topic lines: frames levelled by the IMU, frames with the static pose."""
+        if self.imu is None:
+            return []
+        imu = self.imu
+        lines = [f"  imu           {imu['topic']} ({imu['samples']} samples): {imu['levelled']} "
+                 f"frame(s) levelled by it, {imu['static']} with the static pose (no sample "
+                 f"within imu_max_age_s {imu['max_age_s']:g} s of their stamp)"]
+        lines += [f'  static pose:  frame {index}: {note}' for index, note in imu['notes']]
+        return lines
 
 
 class Progress:
@@ -463,6 +498,22 @@ def warm_up(log=None, segmenter=None) -> None:
             log(f'output clouds pass unavailable ({_one_line(exc)}); using numpy')
 
 
+COMPILE_WAIT_S = 300.0  # longest wait for numba's background compilations (~20 s on 2 cores)
+
+
+def warm_up_before_timing(log=None, segmenter=None) -> float:
+    """:func:`warm_up`, then wait (at most COMPILE_WAIT_S) for the background compilations it
+    queued (core/compiled.py), so that no frame of an offline run times numba compiling (the
+    node does not wait: its first frames take the numpy path meanwhile); the seconds it took.
+    Without a cache (a new install) that is ~20 s on 2 cores, else ~1 s."""
+    start = time.perf_counter()
+    warm_up(log, segmenter)
+    if not compiled.wait(COMPILE_WAIT_S) and log:
+        log(f'numba still compiling after {COMPILE_WAIT_S:g} s: the first frames\' timings '
+            'include the numpy fallback')
+    return time.perf_counter() - start
+
+
 def _storage_plugin(storage: str):
     plugins = {'mcap': StoragePlugin.MCAP, 'sqlite3': StoragePlugin.SQLITE3}
     if storage not in plugins:
@@ -517,7 +568,8 @@ def replay(inputs: Sequence, out_bag, *, topic: Optional[str] = None,
            params_file: Optional[str] = None, storage: str = 'mcap', force: bool = False,
            max_frames: Optional[int] = None, progress: Optional[Progress] = None,
            log=None, output_prefix: Optional[str] = None,
-           frame_id: str = SYNTHETIC_FRAME_ID, labeled: bool = False) -> ReplaySummary:
+           frame_id: str = SYNTHETIC_FRAME_ID, labeled: bool = False,
+           imu_topic: Optional[str] = None) -> ReplaySummary:
     """Segment every PointCloud2 of ``inputs`` on ``topic`` and write the result bag ``out_bag``.
 
     ``inputs``: one bag (directory, .mcap, .db3, or ROS 1 .bag files) or point files / a directory
@@ -531,29 +583,26 @@ def replay(inputs: Sequence, out_bag, *, topic: Optional[str] = None,
     DiagnosticArray per frame), each written at the input message's bag time.
     ``output_prefix`` defaults to the input topic, so the outputs sit beside their input in a
     bag that may hold several clouds; ``''`` gives ``/ground``, ``/obstacles`` and
-    ``/ground_surface``, the node's names in the root namespace. A frame the pipeline rejects
-    (malformed cloud) is skipped, counted and reported with an ERROR diagnostics entry, as the
-    node does. Raises BagError.
+    ``/ground_surface``, the node's names in the root namespace. ``imu_topic``: a
+    sensor_msgs/Imu topic of the bag that levels each cloud as the node's ``imu_topic`` does
+    (``bag_imu.py``; frames without a sample near their stamp keep the static pose, are
+    counted in the summary and WARN in /diagnostics). A frame the pipeline rejects (malformed
+    cloud) is skipped, counted and reported with an ERROR diagnostics entry, as the node does.
+    Raises BagError.
     """
     out = Path(out_bag)
     plugin = _storage_plugin(storage)
     if max_frames is not None and max_frames < 1:
         raise BagError('--max-frames must be at least 1')
-    seg_params, node_params = load_params(params_file)
-    segmenter = GroundSegmenter(seg_params)
-    warm_up(log, segmenter)
-    window = ProcessingWindow(int(node_params.get('diagnostics_window', 50)))
-    budget_ms = float(node_params.get('processing_budget_ms', 100.0))
-    outputs = {name: bool(node_params[name]) for name in pipeline.OUTPUT_SWITCHES}
-    outputs['labeled'] = labeled  # no node parameter: the node builds it for its subscribers
-    summary = ReplaySummary(output=str(out))
+    run = _ReplayRun.start(params_file, labeled, ReplaySummary(output=str(out)), log)
     t_start = time.perf_counter()
     output_prefix = _output_prefix(output_prefix)
     with FrameSource(inputs, topic, max_frames, frame_id) as source:
         _check_output(out, force, source.paths)
-        summary.topic, summary.note = source.topic, source.note
+        run.summary.topic, run.summary.note = source.topic, source.note
         if log and source.note:
             log(source.note)
+        run.gravity = _bag_gravity(source, imu_topic, run.node_params)
         out.parent.mkdir(parents=True, exist_ok=True)
         tmp = _partial_dir(out)
         if tmp.exists():
@@ -561,15 +610,14 @@ def replay(inputs: Sequence, out_bag, *, topic: Optional[str] = None,
         progress = progress or Progress(source.count)
         try:
             with Writer(tmp, version=9, storage_plugin=plugin) as writer:
-                conns = _output_connections(
-                    writer, source.topic if output_prefix is None else output_prefix, outputs)
+                run.writer = writer
+                run.conns = _output_connections(
+                    writer, source.topic if output_prefix is None else output_prefix,
+                    run.outputs)
                 for frame in source:
-                    _replay_frame(frame, segmenter, writer, conns, summary, window, budget_ms,
-                                  outputs)
+                    _replay_frame(frame, run)
                     progress.update(frame.index + 1)
-            if summary.frames == 0:
-                raise BagError(f'none of the {summary.skipped} frame(s) could be segmented: '
-                               f'{summary.skipped_reasons[0] if summary.skipped_reasons else ""}')
+            run.finish()
             _move_into_place(tmp, out)
         except WriterError as err:
             raise BagError(f'cannot write {out}: {_one_line(err)}') from None
@@ -577,8 +625,73 @@ def replay(inputs: Sequence, out_bag, *, topic: Optional[str] = None,
             progress.close()
             if tmp.exists():
                 shutil.rmtree(tmp, ignore_errors=True)
-    summary.wall_s = time.perf_counter() - t_start
-    return summary
+    run.summary.wall_s = time.perf_counter() - t_start
+    return run.summary
+
+
+@dataclass
+class _ReplayRun:
+    """What the frames of one replay share: the segmenter and its static parameters, the node's
+    parameters, output switches and diagnostics window, the writer and its connections, the
+    IMU (with --imu-topic) and the summary."""
+
+    segmenter: GroundSegmenter
+    static: SegmenterParams
+    node_params: dict
+    outputs: dict  # process_cloud keywords
+    window: ProcessingWindow
+    summary: ReplaySummary
+    gravity: object = None  # bag_imu.BagGravity with --imu-topic
+    writer: object = None
+    conns: tuple = ()
+
+    @classmethod
+    def start(cls, params_file, labeled: bool, summary: ReplaySummary, log) -> '_ReplayRun':
+        """The run's parameters and a warmed-up segmenter (its time in the summary)."""
+        seg_params, node_params = load_params(params_file)
+        segmenter = GroundSegmenter(seg_params)
+        summary.warm_up_s = warm_up_before_timing(log, segmenter)
+        outputs = {name: bool(node_params[name]) for name in pipeline.OUTPUT_SWITCHES}
+        outputs['labeled'] = labeled  # no node parameter: the node builds it for subscribers
+        window = ProcessingWindow(int(node_params.get('diagnostics_window', 50)))
+        return cls(segmenter, seg_params, node_params, outputs, window, summary)
+
+    @property
+    def budget_ms(self) -> float:
+        return float(self.node_params.get('processing_budget_ms', 100.0))
+
+    def level(self, msg, index: int):
+        """With an IMU: the segmenter gets frame ``index``'s roll and pitch (as the node's
+        ``_level_with_imu``); the note when the static pose is used, else None."""
+        if self.gravity is None:
+            return None
+        note = None
+        try:
+            pose, params = self.gravity.frame_pose(self.static, msg.header.stamp, index)
+            note = pose.note
+        except ValueError as exc:  # e.g. a pose outside the parameters' range: never the frame
+            params, note = self.static, f'IMU pose failed ({_one_line(exc)}): the static pose'
+        if params != self.segmenter.params:
+            self.segmenter.set_params(params)
+        return note
+
+    def finish(self) -> None:
+        """BagError when no frame could be segmented; the IMU's counts into the summary."""
+        summary = self.summary
+        if summary.frames == 0:
+            raise BagError(f'none of the {summary.skipped} frame(s) could be segmented: '
+                           f'{summary.skipped_reasons[0] if summary.skipped_reasons else ""}')
+        if self.gravity is not None:
+            summary.imu = self.gravity.summary()
+
+
+def _bag_gravity(source: 'FrameSource', imu_topic: Optional[str], node_params: dict):
+    """The bag_imu.BagGravity of ``imu_topic`` in the source's bag, or None without one."""
+    if imu_topic is None:
+        return None
+    if source.kind != 'bag':
+        raise BagError('--imu-topic needs a bag input: point files carry no IMU')
+    return BagGravity(source.paths, normalize_topic(imu_topic, '--imu-topic'), node_params)
 
 
 def _output_prefix(output_prefix: Optional[str]) -> Optional[str]:
@@ -609,19 +722,18 @@ def _output_connections(writer, prefix: str, outputs: dict) -> tuple:
     return clouds, diagnostics
 
 
-def _replay_frame(frame, segmenter, writer, conns, summary, window, budget_ms,
-                  outputs) -> None:
-    """Segment one frame, write its clouds and a DiagnosticArray built like the node's;
-    ``outputs``: the node's output switches (keywords of ``process_cloud``)."""
-    clouds, conn_diag = conns
-    msg = frame.msg
+def _replay_frame(frame, run: _ReplayRun) -> None:
+    """Segment one frame (levelled by the IMU when there is one), write its clouds and a
+    DiagnosticArray built like the node's."""
+    clouds, conn_diag = run.conns
+    msg, window, summary = frame.msg, run.window, run.summary
     frame_id = msg.header.frame_id
     t0 = time.perf_counter()
-    n_in = int(msg.height) * int(msg.width)
     bag_time_s = frame.timestamp_ns * 1e-9
     window.record_received(frame_id, now=bag_time_s)  # input rate in bag time, not wall time
     try:
-        out = pipeline.process_cloud(msg, segmenter, **outputs)
+        imu_note = run.level(msg, frame.index)
+        out = pipeline.process_cloud(msg, run.segmenter, **run.outputs)
     except (CloudFormatError, ValueError, RuntimeError) as err:  # the node drops these too
         text = _one_line(err)
         window.record_failure(text, isinstance(err, ValueError), frame_id)
@@ -630,33 +742,21 @@ def _replay_frame(frame, segmenter, writer, conns, summary, window, budget_ms,
         out = None
     t1 = time.perf_counter()
     if out is not None:
-        window.record_frame(out, frame_id)
+        window.record_frame(out, frame_id, list(out.warnings) + ([imu_note] if imu_note else []))
         for attribute, connection in clouds.items():
             cloud = getattr(out, attribute)
             if cloud is not None:  # no surface when the segmenter gave none
-                writer.write(connection, frame.timestamp_ns, serialize_message(cloud))
-    status = diagnostics_status(window, budget_ms=budget_ms, stale_after_s=None, now=bag_time_s,
-                                extra={'source': 'gp-ground-seg replay', 'frame_index':
-                                       frame.index})
-    writer.write(conn_diag, frame.timestamp_ns,
-                 serialize_message(diagnostics_array([status], stamp=msg.header.stamp)))
+                run.writer.write(connection, frame.timestamp_ns, serialize_message(cloud))
+    status = diagnostics_status(window, budget_ms=run.budget_ms, stale_after_s=None,
+                                now=bag_time_s, extra={'source': 'gp-ground-seg replay',
+                                                       'frame_index': frame.index})
+    run.writer.write(conn_diag, frame.timestamp_ns,
+                     serialize_message(diagnostics_array([status], stamp=msg.header.stamp)))
     t2 = time.perf_counter()
-    if out is None:
-        return
-    res = out.result
-    n_valid = int(np.count_nonzero(res.valid_mask))
-    n_ground = int(np.count_nonzero(res.ground_mask))
-    summary.frames += 1
-    summary.points += n_in
-    summary.valid += n_valid
-    summary.ground += n_ground
-    summary.obstacles += n_valid - n_ground
-    summary.invalid += res.num_invalid
-    summary.thetas.append(tuple(float(v) for v in res.hyperparameters))
-    for k, v in pipeline.frame_timings(out).items():  # same stage names as the node's diagnostics
-        summary.add_stage(k, v)
-    summary.add_stage('write', (t2 - t1) * 1e3)
-    summary.add_stage('frame', (t2 - t0) * 1e3)
+    if out is not None:
+        summary.add_frame(out, int(msg.height) * int(msg.width))
+        summary.add_stage('write', (t2 - t1) * 1e3)
+        summary.add_stage('frame', (t2 - t0) * 1e3)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -38,8 +38,8 @@ from ..core.allocator import keep_freed_memory
 from ..core.segmenter import GroundSegmenter
 from ..ros.pipeline import frame_timings, process_cloud
 from . import batch, play, tune
-from .bag import (FrameSource, is_point_file, load_segmenter_params, read_frame, replay, warm_up,
-                  write_sample_bag)
+from .bag import (FrameSource, is_point_file, load_segmenter_params, read_frame, replay,
+                  warm_up_before_timing, write_sample_bag)
 from .errors import EXIT_ERROR, EXPECTED_ERRORS, CliError, one_line
 from .evaluation import labelled_ground_truth, pooled_metrics, truth_metrics
 from .io import read_semantickitti_labels
@@ -171,7 +171,8 @@ def cmd_eval(args) -> int:
         raise CliError(f'{len(labels_files)} label file(s) given for {frame_count} frame(s); '
                        'give one --labels file per frame')
     segmenter = GroundSegmenter(params)
-    warm_up(lambda text: print(f'gp-ground-seg eval: note: {text}', file=sys.stderr), segmenter)
+    warm_up_before_timing(lambda text: print(f'gp-ground-seg eval: note: {text}',
+                                             file=sys.stderr), segmenter)
     frames = []
     for k, (name, msg) in enumerate(_eval_frames(args.files, args.topic)):
         if labels_files and k >= len(labels_files):
@@ -213,13 +214,16 @@ def cmd_replay(args) -> int:
     summary = replay(inputs, out, topic=args.topic, params_file=args.params,
                      storage=args.storage, force=args.force, max_frames=args.max_frames,
                      output_prefix=args.output_prefix, frame_id=args.frame_id,
-                     labeled=args.labeled,
+                     labeled=args.labeled, imu_topic=args.imu_topic,
                      log=lambda text: print(f'gp-ground-seg replay: note: {text}',
                                             file=sys.stderr))
     print(summary.table())
     if summary.skipped:
         print(f'gp-ground-seg replay: warning: {summary.skipped} frame(s) skipped, see the '
               f'summary and /diagnostics', file=sys.stderr)
+    if summary.imu and summary.imu['static']:
+        print(f"gp-ground-seg replay: warning: {summary.imu['static']} frame(s) without an IMU "
+              f"sample near their stamp kept the static pose, see the summary", file=sys.stderr)
     return 0
 
 
@@ -316,6 +320,11 @@ def build_parser() -> argparse.ArgumentParser:
                    'namespace)')
     add_frame_id_option(p)
     add_labeled_option(p)
+    p.add_argument('--imu-topic', metavar='TOPIC', default=None,
+                   help='sensor_msgs/Imu topic of the input bag: level each cloud with the IMU '
+                   'sample nearest its stamp, as the node\'s imu_topic parameter does (its '
+                   'imu_* parameters from --params); frames without a sample within '
+                   'imu_max_age_s keep the static pose and are counted in the summary')
     p.set_defaults(func=cmd_replay)
 
     p = sub.add_parser('plot', help='plot one frame (side view of a segment + bird\'s-eye view)',

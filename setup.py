@@ -41,11 +41,16 @@ setup(
     ],
     extras_require={
         # matplotlib so that CI also runs the plotting tests instead of skipping them; Dask and
-        # Optuna so that the batch/tune tests run on a real LocalCluster there
-        'test': ['pytest', 'hypothesis', 'matplotlib', 'flake8', 'dask[distributed]', 'optuna'],
+        # Optuna so that the batch/tune tests run on a real LocalCluster there; velodyne-decoder
+        # for the packet bag and pcap tests
+        'test': ['pytest', 'hypothesis', 'matplotlib', 'flake8', 'dask[distributed]', 'optuna',
+                 'velodyne-decoder>=3.1', 'dpkt'],
         'plot': ['matplotlib'],
         'scale': ['dask[distributed]'],  # gp-ground-seg batch/tune --jobs/--scheduler
         'tune': ['optuna'],  # gp-ground-seg tune
+        # replay/eval/batch of Velodyne packet bags and .pcap captures (tools/packets.py);
+        # dpkt (its pcap reader) is also read directly
+        'packets': ['velodyne-decoder>=3.1', 'dpkt'],
         'bench': ['pypatchworkpp', 'linefit'],
     },
     zip_safe=True,

@@ -25,6 +25,8 @@ OPTIONAL_EXTRAS = {
     'dask': 'scale',  # tools/engine.py, batch and tune --jobs/--scheduler
     'distributed': 'scale',
     'optuna': 'tune',  # tools/tune.py
+    'velodyne_decoder': 'packets',  # tools/packets.py: Velodyne packet bags and .pcap
+    'dpkt': 'packets',
 }
 
 # Function-level imports of required modules in ros/, which another change of issue 30 owns;

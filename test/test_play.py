@@ -163,3 +163,24 @@ def test_play_bad_input_is_one_line(tmp_path, capsys):
         main(['play', str(tmp_path), '--qos-depth', '0'])
     assert bad_depth.value.code == 2
     assert 'expected an integer >= 1' in capsys.readouterr().err
+
+
+@pytest.mark.parametrize('content', [b'abcdefg', b''])
+def test_play_checks_the_first_frame_before_waiting_for_subscribers(tmp_path, capsys,
+                                                                    monkeypatch, content):
+    # a truncated .bin (or an empty one: no point) is only found by reading it: it must be
+    # read before the node is created and the 5 s subscriber wait starts, as replay does
+    from gp_ground_segmentation.tools import play
+    scan = tmp_path / 'scan.bin'
+    scan.write_bytes(content)
+
+    def no_graph(*args, **kwargs):
+        raise AssertionError('the ROS graph was started before the input was checked')
+    monkeypatch.setattr(play.rclpy, 'create_node', no_graph)
+    if content:
+        assert main(['play', str(scan)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and 'not a multiple of 16' in err[0], err
+    else:  # an empty scan is a frame (the node reports it): it gets to the graph
+        with pytest.raises(AssertionError, match='ROS graph was started'):
+            main(['play', str(scan)])

@@ -48,12 +48,14 @@ from ..ros.diagnostics import ProcessingWindow, diagnostics_array, diagnostics_s
 from .bag_imu import BagGravity
 from .errors import BagError, one_line
 from .io import PointFileError, read_points_file
+from .packets import VELODYNE_SCAN, ScanDecoder, cloud_topic, packet_typestore, pcap_clouds
 
 POINTCLOUD2 = 'sensor_msgs/msg/PointCloud2'
 DIAGNOSTIC_ARRAY = 'diagnostic_msgs/msg/DiagnosticArray'
 DEFAULT_TOPIC = '/velodyne_points'
 DIAGNOSTICS_TOPIC = '/diagnostics'
 POINT_FILE_SUFFIXES = ('.bin', '.pcd')
+PCAP_SUFFIX = '.pcap'  # a Velodyne packet capture (tools/packets.py)
 SYNTHETIC_PERIOD_NS = 100_000_000  # point files get stamps i * 0.1 s (a 10 Hz spinning LiDAR)
 SYNTHETIC_FRAME_ID = 'velodyne'
 
@@ -130,6 +132,10 @@ def _expand_inputs(inputs: Sequence) -> tuple[str, list[Path]]:
     for p in paths:
         if not p.exists():
             raise BagError(f'{p}: no such file or directory')
+    if any(p.suffix.lower() == PCAP_SUFFIX for p in paths):
+        if len(paths) > 1 or not paths[0].is_file():
+            raise BagError('give one .pcap file alone (one capture per run)')
+        return 'pcap', paths
     if len(paths) == 1 and paths[0].is_dir() and not (paths[0] / 'metadata.yaml').exists():
         files = sorted(f for f in paths[0].iterdir() if f.is_file() and is_point_file(f))
         if not files:
@@ -182,9 +188,12 @@ class FrameSource:
         self.note = ''  # a remark for the user (e.g. the topic was picked automatically)
         self._reader = None
         self._connections = []
+        self._scan_decoder = None  # packets.ScanDecoder for a VelodyneScan topic
 
     @property
     def description(self) -> str:
+        if self.kind == 'pcap':
+            return f'Velodyne capture {self.paths[0]}'
         if self.kind == 'files':
             return f'{len(self.paths)} point file(s) starting with {self.paths[0]}'
         return ', '.join(str(p) for p in self.paths)
@@ -192,6 +201,10 @@ class FrameSource:
     def __enter__(self) -> 'FrameSource':
         if self.kind == 'files':
             self.count = len(self.paths)
+        elif self.kind == 'pcap':
+            # decoded once to count its rotations (velodyne-decoder cuts them): a truncated or
+            # undecodable capture fails here, before anything is written or published
+            self.count = sum(1 for _ in pcap_clouds(self.paths[0], self.frame_id))
         else:
             try:
                 self._open_bag()
@@ -216,8 +229,9 @@ class FrameSource:
     def _open_bag(self) -> None:
         name = self.description
         try:
-            # Older rosbag2 bags (metadata < 8) carry no message definitions: use Jazzy's types.
-            reader = AnyReader(self.paths, default_typestore=get_typestore(Stores.ROS2_JAZZY))
+            # Older rosbag2 bags (metadata < 8) carry no message definitions: use Jazzy's
+            # types, and the Velodyne driver's, which rosbags does not have
+            reader = AnyReader(self.paths, default_typestore=packet_typestore())
             reader.open()
         except _reader_errors() as err:
             raise BagError(f'cannot read bag {name} (corrupt, truncated or not a bag): '
@@ -228,33 +242,76 @@ class FrameSource:
             topics.setdefault(c.topic, set()).add(c.msgtype)
         if not topics:
             raise BagError(f'bag {name} is empty: it has no topics')
-        listing = ', '.join(f'{t} [{"|".join(sorted(m))}]' for t, m in sorted(topics.items()))
-        if self.topic not in topics:
-            clouds = [t for t, m in topics.items() if m == {POINTCLOUD2}]
-            if self.requested_topic is None and len(clouds) == 1:
-                self.note = f'topic {DEFAULT_TOPIC} not in the bag; using {clouds[0]}'
-                self.topic = clouds[0]
-            else:
-                hint = '' if clouds else (
-                    f'; none is {POINTCLOUD2}: raw sensor packets must be decoded to point '
-                    f'clouds first (velodyne_pointcloud, ouster-ros, Nebula)')
-                raise BagError(f'topic {self.topic} not in bag {name}; its topics: {listing}'
-                               f'{hint}')
-        types = topics[self.topic]
-        if types != {POINTCLOUD2}:
-            raise BagError(f'topic {self.topic} carries {"|".join(sorted(types))}, not '
-                           f'{POINTCLOUD2}; the segmenter needs point clouds (decode raw '
-                           f'packets with the sensor\'s driver first); its topics: {listing}')
+        self._pick_topic(topics, name)
+        if topics[self.topic] == {VELODYNE_SCAN}:  # raw packets: decoded scan by scan
+            self._scan_decoder = ScanDecoder(f'bag {name}')
+            self._check_first_scan(name)
         self._connections = [c for c in reader.connections if c.topic == self.topic]
         self.count = sum(c.msgcount for c in self._connections)
         if self.count == 0:
             raise BagError(f'topic {self.topic} in bag {name} has no messages')
 
+    def _check_first_scan(self, name: str) -> None:
+        """Decode the topic's first VelodyneScan (with a decoder of its own), so that packets
+        velodyne-decoder cannot read (another model) fail before anything is written."""
+        reader = self._reader
+        conns = [c for c in reader.connections if c.topic == self.topic]
+        try:
+            first = next(iter(reader.messages(connections=conns)), None)
+            scan = None if first is None else reader.deserialize(first[2], first[0].msgtype)
+        except _reader_errors() as err:
+            raise BagError(f'bag {name} is corrupt or truncated (message 0 on {self.topic}): '
+                           f'{_one_line(err)}') from None
+        if scan is not None:
+            ScanDecoder(f'bag {name}').cloud(scan, 0)
+
+    def _pick_topic(self, topics: dict, name: str) -> None:
+        """Check ``self.topic`` (``{topic: message types}`` of the bag ``name``); without
+        --topic and without DEFAULT_TOPIC, take the bag's one PointCloud2 topic, else its one
+        VelodyneScan topic."""
+        listing = ', '.join(f'{t} [{"|".join(sorted(m))}]' for t, m in sorted(topics.items()))
+        if self.topic not in topics:
+            clouds = [t for t, m in topics.items() if m == {POINTCLOUD2}]
+            scans = [t for t, m in topics.items() if m == {VELODYNE_SCAN}]
+            found = clouds if clouds else scans
+            if self.requested_topic is None and len(found) == 1:
+                what = '' if clouds else ' (Velodyne packets, one frame per scan)'
+                self.note = f'topic {DEFAULT_TOPIC} not in the bag; using {found[0]}{what}'
+                self.topic = found[0]
+            else:
+                hint = '' if found else (
+                    f'; none is {POINTCLOUD2} or {VELODYNE_SCAN}: other raw sensor packets must '
+                    f'be decoded to point clouds first (ouster-ros, Nebula)')
+                raise BagError(f'topic {self.topic} not in bag {name}; its topics: {listing}'
+                               f'{hint}')
+        types = topics[self.topic]
+        if types not in ({POINTCLOUD2}, {VELODYNE_SCAN}):
+            raise BagError(f'topic {self.topic} carries {"|".join(sorted(types))}, not '
+                           f'{POINTCLOUD2} (or Velodyne packets, {VELODYNE_SCAN}); the '
+                           f'segmenter needs point clouds (decode other raw packets with the '
+                           f'sensor\'s driver first); its topics: {listing}')
+
+    @property
+    def cloud_topic(self) -> str:
+        """The topic of the clouds this source yields: the input topic, or for Velodyne packets
+        the driver's cloud topic (packets.cloud_topic); a .pcap's are DEFAULT_TOPIC's."""
+        if self.kind == 'pcap':
+            return DEFAULT_TOPIC
+        return cloud_topic(self.topic) if self._scan_decoder is not None else self.topic
+
     def __iter__(self) -> Iterator[InputFrame]:
         if self.kind == 'files':
             yield from self._iter_files()
+        elif self.kind == 'pcap':
+            yield from self._iter_pcap()
         else:
             yield from self._iter_bag()
+
+    def _iter_pcap(self) -> Iterator[InputFrame]:
+        for i, (stamp_ns, msg) in enumerate(pcap_clouds(self.paths[0], self.frame_id)):
+            if i >= self.count:
+                return
+            yield InputFrame(i, stamp_ns, msg)
 
     def _iter_files(self) -> Iterator[InputFrame]:
         for i, path in enumerate(self.paths[:self.count]):
@@ -275,10 +332,15 @@ class FrameSource:
                 if item is None:
                     break
                 connection, timestamp, raw = item
-                if reader.is2:
+                if self._scan_decoder is not None:  # rosbags decodes the packets' message
+                    msg = self._scan_decoder.cloud(
+                        reader.deserialize(raw, connection.msgtype), i)
+                elif reader.is2:
                     msg = deserialize_message(bytes(raw), PointCloud2)
                 else:  # ROS 1 serialisation: rosbags decodes it, we copy into the rclpy class
                     msg = _ros1_to_rclpy_cloud(reader.deserialize(raw, connection.msgtype))
+            except BagError:  # a scan velodyne-decoder cannot read: said by the decoder
+                raise
             except errors as err:
                 raise BagError(f'bag {self.description} is corrupt or truncated (message {i} on '
                                f'{self.topic}): {_one_line(err)}') from None
@@ -329,7 +391,8 @@ def read_frame(spec: str, topic: Optional[str] = None):
                            f'is out of range')
         for frame in source:
             if frame.index == index:
-                return frame.msg, f'{path}:{index} ({source.topic})'
+                topic = f' ({source.topic})' if source.kind == 'bag' else ''
+                return frame.msg, f'{path}:{index}{topic}'
     raise BagError(f'frame {index} could not be read from {path}')  # pragma: no cover
 
 
@@ -612,7 +675,7 @@ def replay(inputs: Sequence, out_bag, *, topic: Optional[str] = None,
             with Writer(tmp, version=9, storage_plugin=plugin) as writer:
                 run.writer = writer
                 run.conns = _output_connections(
-                    writer, source.topic if output_prefix is None else output_prefix,
+                    writer, source.cloud_topic if output_prefix is None else output_prefix,
                     run.outputs)
                 for frame in source:
                     _replay_frame(frame, run)
@@ -690,7 +753,7 @@ def _bag_gravity(source: 'FrameSource', imu_topic: Optional[str], node_params: d
     if imu_topic is None:
         return None
     if source.kind != 'bag':
-        raise BagError('--imu-topic needs a bag input: point files carry no IMU')
+        raise BagError('--imu-topic needs a bag input: point files and pcap captures carry no IMU')
     return BagGravity(source.paths, normalize_topic(imu_topic, '--imu-topic'), node_params)
 
 

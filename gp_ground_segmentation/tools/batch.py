@@ -37,7 +37,7 @@ from .errors import EXPECTED_ERRORS, CliError, one_line
 from .options import add_labeled_option
 
 PROGRESS_TOPIC = 'gp-ground-seg-batch-progress'
-BAG_SUFFIXES = ('.mcap', '.db3', '.bag')
+BAG_SUFFIXES = ('.mcap', '.db3', '.bag', '.pcap')  # output DIR/<name without them>
 THETA_NAMES = ('sigma_f', 'gain', 'sigma_n')
 CSV_FIELDS = ('input', 'output', 'status', 'frames', 'skipped_frames', 'points', 'ground_share',
               'total_ms_p50', 'total_ms_p95') + tuple(

@@ -154,9 +154,10 @@ def cmd_play(args) -> int:
     if not args.delay >= 0:
         raise CliError('--delay must be >= 0')
     source = FrameSource(args.inputs, args.topic, args.max_frames, args.frame_id)
-    with source:
-        pass  # open once up front: bad input is reported before the ROS graph starts
-    normalize_topic(source.topic, strict=True)  # it publishes on it: rclpy's rules apply
+    with source:  # opened and its first frame decoded up front, as replay does: bad input is
+        next(iter(source))  # reported before the ROS graph starts and the subscriber wait
+    # it publishes on it (a packet bag's clouds on the driver's cloud topic): rclpy's rules apply
+    topic = normalize_topic(source.cloud_topic, strict=True)
     prog = 'gp-ground-seg play'
     if source.note:
         print(f'{prog}: note: {source.note}', file=sys.stderr)
@@ -168,7 +169,7 @@ def cmd_play(args) -> int:
     passes = 0
     try:
         node = rclpy.create_node('gp_ground_seg_play', context=context)
-        player = _Player(node, source.topic, args.rate, args.restamp, args.clock,
+        player = _Player(node, topic, args.rate, args.restamp, args.clock,
                          args.qos_reliability, args.qos_depth)
         deadline = time.monotonic() + args.wait_for_subscriber
         while player.pub.get_subscription_count() == 0 and time.monotonic() < deadline:
@@ -178,7 +179,7 @@ def cmd_play(args) -> int:
         time.sleep(args.delay)
         subs = player.pub.get_subscription_count()
         print(f'{prog}: publishing {source.count} frame(s) of {source.description} on '
-              f'{source.topic} (rate x{args.rate:g}{", loop" if args.loop else ""}'
+              f'{topic} (rate x{args.rate:g}{", loop" if args.loop else ""}'
               f'{", restamped" if args.restamp else ""}{", /clock" if args.clock else ""}; '
               f'{subs} subscriber(s))', file=sys.stderr)
         period_ns = 0

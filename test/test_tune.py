@@ -92,8 +92,10 @@ def tuned(tmp_path_factory):
     out = tmp_path_factory.mktemp('tune') / 'tuned.yaml'
     buf = io.StringIO()
     with contextlib.redirect_stdout(buf):
+        # --write-tuned: the tuned keys are written even though they do not beat the defaults
+        # on held-out scenes here (see test_a_tuned_set_below_the_defaults...)
         rc = main(['tune', str(SEQ00), str(SPVNAS), '--trials', '8', '--jobs', '2', '--json',
-                   '--out', str(out)])
+                   '--write-tuned', '--out', str(out)])
     assert rc == 0
     return out, json.loads(buf.getvalue())
 
@@ -198,3 +200,50 @@ def test_without_optuna_one_line(monkeypatch, tmp_path, capsys):
     assert main(['tune', str(SEQ00), '--out', str(tmp_path / 'p.yaml')]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "pip install 'gp_ground_segmentation[tune]'" in err[0]
+
+
+@needs_data
+def test_a_tuned_set_below_the_defaults_is_not_presented_as_an_improvement(tmp_path, capsys):
+    import re
+
+    from gp_ground_segmentation.core.params import SegmenterParams
+    from gp_ground_segmentation.ros.config import load_params_file
+    from gp_ground_segmentation.tools.cli import main
+    out = tmp_path / 'p.yaml'
+    assert main(['tune', str(SEQ00), str(SPVNAS), '--trials', '3', '--out', str(out)]) == 0
+    captured = capsys.readouterr()
+    tuned, defaults = (float(v) for v in re.search(
+        r'CV F1: tuned ([\d.]+), defaults ([\d.]+)', captured.out).groups())
+    # measured 2026-12-01: 0.9744 vs 0.9747 (the issue's case)
+    assert tuned <= defaults, 'this study no longer ends below the defaults: pick another'
+    assert f'not an improvement: the tuned set scores {tuned:.4f} cross-validated F1 against ' \
+           f'{defaults:.4f} for the defaults' in captured.out
+    assert 'gp-ground-seg tune: warning: not an improvement' in captured.err
+    assert '  changed:' not in captured.out and '  tuned values: {' in captured.out
+    assert 'the defaults: no key set; the tuned values are in its comments' in captured.out
+    text = out.read_text()
+    assert 'NOT AN IMPROVEMENT' in text and 'ros__parameters: {}' in text
+    comments = ' '.join(line[2:] for line in text.splitlines() if line.startswith('# '))
+    assert re.search(r'The tuned values, not set: \w+: ', comments)
+    assert load_params_file(out)[0] == SegmenterParams()
+    # --write-tuned writes them, still saying what they are
+    assert main(['tune', str(SEQ00), str(SPVNAS), '--trials', '3', '--out', str(out), '--force',
+                 '--write-tuned']) == 0
+    assert 'NOT AN IMPROVEMENT' in out.read_text()
+    assert load_params_file(out)[0] != SegmenterParams()
+
+
+def test_improves_needs_a_change_and_a_better_held_out_score():
+    report = tune.TuneReport(frames=[], scenes={}, trials=1, seed=0, engine='', final=None,
+                             tuned={'num_bins': 20}, train_f1_tuned=0.98,
+                             train_f1_defaults=0.97, cv_f1_tuned=0.9744, cv_f1_defaults=0.9747,
+                             folds=[{}])
+    assert not tune.improves(report) and tune.not_an_improvement(report)
+    for cv_tuned, expected in ((0.9747, False), (0.9748, True)):
+        report.cv_f1_tuned = cv_tuned
+        assert tune.improves(report) is expected
+        assert bool(tune.not_an_improvement(report)) is not expected
+    report.cv_f1_tuned = report.cv_f1_defaults = None  # one scene: nothing to tell it by
+    assert tune.improves(report)
+    report.tuned = {}  # nothing changed: nothing to present
+    assert not tune.improves(report) and not tune.not_an_improvement(report)

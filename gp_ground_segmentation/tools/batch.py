@@ -34,7 +34,7 @@ import numpy as np
 from .bag import FrameSource, Progress, load_params, replay
 from .engine import add_engine_arguments, open_engine, peak_rss_mb
 from .errors import EXPECTED_ERRORS, CliError, one_line
-from .options import add_labeled_option
+from .options import add_labeled_option, add_storage_option
 
 PROGRESS_TOPIC = 'gp-ground-seg-batch-progress'
 BAG_SUFFIXES = ('.mcap', '.db3', '.bag', '.pcap')  # output DIR/<name without them>
@@ -332,7 +332,7 @@ def add_parser(sub) -> None:
     add_engine_arguments(p)
     p.add_argument('--params', metavar='YAML', help='node parameter file (config/params.yaml)')
     p.add_argument('--topic', default=None, help='input PointCloud2 topic (as for replay)')
-    p.add_argument('--storage', choices=('mcap', 'sqlite3'), default='mcap')
+    add_storage_option(p)
     p.add_argument('--force', action='store_true', help='redo inputs whose output exists')
     add_labeled_option(p)
     p.set_defaults(func=cmd_batch)

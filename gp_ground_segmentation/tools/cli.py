@@ -19,8 +19,11 @@ Subcommands:
 * ``hz TOPIC...``      print topic rates and a one-line summary of the last message.
 
 Every expected failure prints one line ``gp-ground-seg <cmd>: error: ...`` on stderr and exits
-with status 2 (tools/errors.py); there is no traceback for bad input. This module is the entry
-point only: nothing in the package imports it.
+with status 2 (tools/errors.py); there is no traceback for bad input. A usage error names its
+subcommand too (an unknown option of ``replay``: ``gp-ground-seg replay: error: unrecognized
+arguments: ...``). ``gp-ground-seg`` without a subcommand prints the help on stdout and exits
+with status 2, argparse's status for a missing argument (a script that lost its subcommand does
+not pass). This module is the entry point only: nothing in the package imports it.
 """
 
 from __future__ import annotations
@@ -44,7 +47,7 @@ from .errors import EXIT_ERROR, EXPECTED_ERRORS, CliError, one_line
 from .evaluation import labelled_ground_truth, pooled_metrics, truth_metrics
 from .io import read_semantickitti_labels
 from .options import (add_frame_id_option, add_label_class_arguments, add_labeled_option,
-                      label_classes, no_ground_note)
+                      add_storage_option, label_classes, no_ground_note)
 from .plot import plot_frame
 
 
@@ -243,13 +246,14 @@ def cmd_plot(args) -> int:
         labels = read_semantickitti_labels(args.labels,
                                            expected_points=int(msg.height) * int(msg.width))
     info = plot_frame(msg, out, params=params, segment=args.segment, labels=labels, title=name,
-                      label_classes=classes)
+                      label_classes=classes, extent=args.extent)
     if 'metrics' in info:
         note = no_ground_note(args.labels, info['metrics']['tp'] + info['metrics']['fn'],
                               classes[0])
         if note:
             print(f'gp-ground-seg plot: note: {note}', file=sys.stderr)
-    print(f'wrote {out} (segment {info["segment"]}, {info["points"]} points)')
+    print(f'wrote {out} (segment {info["segment"]}, {info["points"]} points, bird\'s-eye '
+          f'extent +-{info["extent_m"]:g} m)')
     return 0
 
 
@@ -268,10 +272,27 @@ def cmd_make_sample(args) -> int:
 # ---------------------------------------------------------------------------------------------
 
 class _Parser(argparse.ArgumentParser):
-    """argparse with exit status 2 and a one-line message (its default, made explicit)."""
+    """argparse with exit status 2 and a one-line message (its default, made explicit);
+    ``subcommands``: name -> parser of the subcommands (set by build_parser)."""
+
+    subcommands: dict = {}
 
     def error(self, message):
         self.exit(EXIT_ERROR, f'{self.prog}: error: {" ".join(message.split())}\n')
+
+    def parse_command_line(self, argv):
+        """parse_args, with an unknown option reported by the subcommand it was given to
+        (argparse reports it as the main parser's); no subcommand at all: the help, status 2."""
+        argv = list(sys.argv[1:] if argv is None else argv)
+        if not argv:
+            self.print_help()
+            self.exit(EXIT_ERROR)
+        args, unknown = self.parse_known_args(argv)
+        if unknown:
+            before = argv[:argv.index(args.command)] if args.command in argv else argv
+            owner = self if set(unknown) & set(before) else self.subcommands[args.command]
+            owner.error(f'unrecognized arguments: {" ".join(unknown)}')
+        return args
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -310,7 +331,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help='input PointCloud2 topic (default /velodyne_points; if absent and the '
                    'bag has exactly one PointCloud2 topic, that one)')
     p.add_argument('--params', metavar='YAML', help='node parameter file (config/params.yaml)')
-    p.add_argument('--storage', choices=('mcap', 'sqlite3'), default='mcap')
+    add_storage_option(p)
     p.add_argument('--force', action='store_true', help='overwrite OUT_BAG if it exists')
     p.add_argument('--max-frames', type=int, metavar='K', help='stop after K frames')
     p.add_argument('--output-prefix', metavar='PREFIX', default=None,
@@ -330,35 +351,47 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser('plot', help='plot one frame (side view of a segment + bird\'s-eye view)',
                        description='FRAME: a .bin/.pcd file or BAG:INDEX (e.g. '
                        'data/kitti00_sample:0).')
-    p.add_argument('frame', metavar='FRAME')
+    p.add_argument('frame', metavar='FRAME', help='.bin or .pcd file, or BAG:INDEX (a bag '
+                   'frame from 0; a .pcap capture too)')
     p.add_argument('--segment', type=int, metavar='K',
                    help='angular segment for the side view (default: the one straight ahead, '
                    '+x)')
     p.add_argument('--labels', metavar='FILE.label', help='colour the top view by TP/FP/FN')
+    p.add_argument('--extent', type=float, metavar='M',
+                   help='half-width of the bird\'s-eye panels in m (default: fitted to the data, '
+                   'the 98th percentile of max(|x|, |y|) of the points plus 5 %%, rounded up)')
     add_label_class_arguments(p)
     p.add_argument('--params', metavar='YAML', help='node parameter file (config/params.yaml)')
     p.add_argument('--topic', default=None, help='PointCloud2 topic for a bag FRAME')
-    p.add_argument('--out', required=True, metavar='FIG.png')
+    p.add_argument('--out', required=True, metavar='FIG.png',
+                   help='figure file to write (PNG; .svg and .pdf work too); its parent '
+                   'directories are created')
     p.add_argument('--force', action='store_true', help='overwrite FIG.png if it exists')
     p.set_defaults(func=cmd_plot)
 
-    p = sub.add_parser('make-sample', help='write the small sample bag shipped in data/')
+    p = sub.add_parser('make-sample', help='write the small sample bag shipped in data/',
+                       description='Copy the first messages of a bag topic unchanged (raw '
+                       'bytes, same bag times) into a new zstd-compressed mcap bag, as '
+                       'data/kitti00_sample was made (data/README.md), and print its sha256.')
     p.add_argument('source', help='input rosbag2 (e.g. ../shared/data/kitti00_velodyne_points)')
     p.add_argument('out', help='output bag directory (must not exist)')
-    p.add_argument('--frames', type=int, default=3)
-    p.add_argument('--topic', default='/velodyne_points')
+    p.add_argument('--frames', type=int, default=3, metavar='K',
+                   help='how many messages to copy, from the first (default 3)')
+    p.add_argument('--topic', default='/velodyne_points',
+                   help='topic whose messages are copied (default /velodyne_points)')
     p.set_defaults(func=cmd_make_sample)
 
     batch.add_parser(sub)
     tune.add_parser(sub)
     play.register(sub)  # play, hz
+    parser.subcommands = dict(sub.choices)
     return parser
 
 
 def main(argv=None) -> int:
     """Entry point of ``gp-ground-seg``; returns the exit status (0 ok, 2 error)."""
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args = parser.parse_command_line(argv)
     prog = f'gp-ground-seg {args.command}'
     # the process is ours: keep each frame's freed memory for the next frame (a third less
     # time per replayed frame; core/allocator.py). Where it does not apply, nothing changes.

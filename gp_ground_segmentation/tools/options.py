@@ -5,7 +5,8 @@
   ``--ignore-classes``; eval, plot, tune), resolved by :func:`label_classes` with the ontologies
   and protocols of :mod:`.evaluation`;
 * the frame id of clouds made from point files (``--frame-id``; replay, play);
-* the labelled cloud among the outputs (``--labeled``; replay, batch).
+* the labelled cloud among the outputs (``--labeled``) and the output bags' storage
+  (``--storage``; replay, batch).
 """
 
 from __future__ import annotations
@@ -80,3 +81,10 @@ def add_labeled_option(parser) -> None:
                         'point in input order, its fields byte for byte plus ground (uint8, 1 = '
                         'ground) and height_above_ground (float32, m); the rows '
                         'gp_ground_segmentation.labels.labeled_points returns (default off)')
+
+
+def add_storage_option(parser) -> None:
+    """--storage: the output bags' rosbag2 storage plugin."""
+    parser.add_argument('--storage', choices=('mcap', 'sqlite3'), default='mcap',
+                        help='storage of the output bag(s): mcap (one .mcap file, default) or '
+                        'sqlite3 (.db3, the rosbag2 default before Iron)')

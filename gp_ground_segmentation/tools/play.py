@@ -349,7 +349,8 @@ def register(sub) -> None:
                        'every PERIOD seconds, with a one-line summary of the last message '
                        '(points and frame_id of a PointCloud2, level and message of '
                        'diagnostics). Ctrl-C or --duration ends it with a summary.')
-    p.add_argument('topics', nargs='+', metavar='TOPIC')
+    p.add_argument('topics', nargs='+', metavar='TOPIC',
+                   help='topic names (e.g. /ground /obstacles /diagnostics)')
     p.add_argument('--window', type=_positive_int, default=50, metavar='N',
                    help='rate over the last N messages (default 50)')
     p.add_argument('--period', type=_positive_float, default=1.0, metavar='S',

@@ -8,7 +8,8 @@ that end line-segments, the fitted line-segments, and the ground surface z +/- 2
 Middle panel (bird's-eye view, x vs y): every valid point coloured ground / obstacle, or, when
 labels are given (SemanticKITTI classes by default; --dataset), by error: true ground found
 (TP), ground missed (FN), obstacle called ground (FP), obstacle kept (TN); the selected segment
-is outlined.
+is outlined. Both bird's-eye panels span +-extent m, fitted to the data (:func:`fitted_extent`:
+a 10 m indoor cloud fills them as a 60 m road scan does) unless given.
 Right panel (bird's-eye height map): the ground surface coloured by z, with contours of z_std
 (the std of the ground height, surface.z_std) over the supported prediction points.
 
@@ -128,14 +129,34 @@ def default_segment(num_segments: int) -> int:
     return int(segment_of(np.array([1.0]), np.array([0.0]), num_segments)[0])
 
 
+EXTENT_QUANTILE = 98.0  # percentile of max(|x|, |y|) of the valid points the panels show
+MIN_EXTENT_M = 1.0
+
+
+def fitted_extent(xyz: np.ndarray, valid: np.ndarray) -> float:
+    """Half-width (m) of the bird's-eye panels that fits the data: the EXTENT_QUANTILE
+    percentile of max(|x|, |y|) of the valid points (a few far returns do not shrink the rest to
+    a dot), 5 % more, rounded up to a round step (half the power of ten below it: 53 -> 55 m,
+    8.3 -> 8.5 m); at least MIN_EXTENT_M."""
+    reach = np.max(np.abs(xyz[valid, :2]), axis=1) if np.any(valid) else np.zeros(1)
+    half = 1.05 * float(np.percentile(reach, EXTENT_QUANTILE))
+    if half <= MIN_EXTENT_M:
+        return MIN_EXTENT_M
+    step = 10.0 ** math.floor(math.log10(half)) / 2.0
+    return math.ceil(half / step) * step
+
+
 def plot_frame(msg, out_path, *, params=None, segment=None, labels=None, title='',
-               label_classes=None, dpi=110) -> dict:
+               label_classes=None, dpi=110, extent=None) -> dict:
     """Segment one PointCloud2 and save the three-panel figure to ``out_path`` (PNG, SVG, PDF).
 
     ``labels``: semantic classes per point (optional), scored with ``label_classes`` = (ground
-    classes, ignored classes), default SemanticKITTI's under the default protocol. Returns a
-    dict with the segment index, point count and, with labels, the metrics.
+    classes, ignored classes), default SemanticKITTI's under the default protocol. ``extent``:
+    half-width (m) of the bird's-eye panels, default :func:`fitted_extent`. Returns a dict with
+    the segment index, point count, the extent and, with labels, the metrics.
     """
+    if extent is not None and not (math.isfinite(extent) and extent > 0):
+        raise PlotError(f'--extent must be a finite number of metres > 0, got {extent}')
 
     plt = _pyplot()  # fail early, before the (slow) segmentation
     params = params or SegmenterParams()
@@ -146,24 +167,25 @@ def plot_frame(msg, out_path, *, params=None, segment=None, labels=None, title='
     if not 0 <= segment < m:
         raise PlotError(f'--segment {segment} is outside 0..{m - 1} (num_segments = {m})')
     result = GroundSegmenter(params).segment(xyz, details=True)
+    reach = float(extent) if extent is not None else fitted_extent(xyz, result.valid_mask)
     view = segment_view(xyz, result, segment, m)
     n_valid = int(np.count_nonzero(result.valid_mask))
     n_ground = int(np.count_nonzero(result.ground_mask))
     theta = result.hyperparameters
     info = {'segment': segment, 'points': int(len(xyz)), 'ground_points': n_ground,
             'sigma_f': float(theta.sigma_f), 'gain': float(theta.gain),
-            'sigma_n': float(theta.sigma_n)}
+            'sigma_n': float(theta.sigma_n), 'extent_m': reach}
 
     fig, (ax_side, ax_top, ax_surface) = plt.subplots(
         1, 3, figsize=(25, 7.2), gridspec_kw={'width_ratios': [1.45, 1, 1.15]})
     _draw_side(ax_side, view, segment, m)
-    _draw_surface(ax_surface, result.ground_surface, fig)
+    _draw_surface(ax_surface, result.ground_surface, fig, reach)
     ground_classes, ignored_classes = label_classes or DEFAULT_PROTOCOL.classes(SEMANTIC_KITTI)
     truth = evaluated = None
     if labels is not None:
         truth, evaluated = labelled_ground_truth(labels, ground_classes, ignored_classes)
         info['metrics'] = truth_metrics(result.ground_mask, truth, evaluated)
-    _draw_top(ax_top, xyz, result, truth, evaluated, ignored_classes, segment, m)
+    _draw_top(ax_top, xyz, result, (truth, evaluated, ignored_classes), (segment, m), reach)
     # the surface panel's numbers too: a figure drawn before a change of z_std is stale
     surface_points = result.ground_surface.points()
     info['surface_z_std_mean'] = (float(np.mean(surface_points[:, 3]))
@@ -241,7 +263,11 @@ def _draw_side(ax, v, segment, m):
     ax.legend(loc='upper left', fontsize=8, markerscale=1.5, framealpha=0.9)
 
 
-def _draw_top(ax, xyz, result, truth, evaluated, ignored_classes, segment, m):
+def _draw_top(ax, xyz, result, scoring, segment_of_m, reach):
+    """Bird's-eye panel of ``reach`` m; ``scoring``: (truth, evaluated, ignored classes) or
+    Nones; ``segment_of_m``: (the side view's segment, num_segments)."""
+    truth, evaluated, ignored_classes = scoring
+    segment, m = segment_of_m
     valid = result.valid_mask
     ground = result.ground_mask
     x, y = xyz[:, 0], xyz[:, 1]
@@ -263,7 +289,6 @@ def _draw_top(ax, xyz, result, truth, evaluated, ignored_classes, segment, m):
                    lw=0, label=f'{name} ({np.count_nonzero(mask)})', rasterized=True)
     width = 2 * math.pi / m
     a0 = -math.pi + segment * width
-    reach = 40.0
     far = 2 * reach  # the wedge runs past the axes so it is visible at every azimuth
     wedge = [(0.0, 0.0), (far * math.cos(a0), far * math.sin(a0)),
              (far * math.cos(a0 + width), far * math.sin(a0 + width))]
@@ -283,7 +308,7 @@ def _birds_eye_axes(ax, reach):
     ax.grid(True, alpha=0.3)
 
 
-def _draw_surface(ax, surface, fig, reach=40.0):
+def _draw_surface(ax, surface, fig, reach):
     """Bird's-eye height map of the ground surface: z filled, z_std as labelled contours."""
     ax.set_title('ground surface: height z (colour), z_std (contours, m)')
     _birds_eye_axes(ax, reach)

@@ -25,6 +25,13 @@ The output is a ROS 2 parameter file with the layout of config/params.yaml (``'/
 ``ros__parameters:``: the node in any namespace), only the keys that differ from the defaults,
 and a comment header saying what it was tuned on and the scores; the node (``--params-file``)
 and ``replay --params`` load it.
+
+A tuned set whose cross-validated F1 does not beat the defaults' (:func:`improves`) is no
+improvement, whatever it scores on its training frames: the output says so plainly (stdout and
+a warning on stderr), and the file keeps the defaults (no key set) with the tuned values in its
+comments, so that a file used without reading the report does no harm; ``--write-tuned`` writes
+them anyway. The exit status stays 0: the search worked, its finding is that the defaults
+generalise better. With one scene there is no cross-validation: the tuned keys are written.
 """
 
 from __future__ import annotations
@@ -254,7 +261,29 @@ class TuneReport:
     def as_dict(self) -> dict:
         doc = dataclasses.asdict(self)
         doc['frames'] = [dataclasses.asdict(f) for f in self.frames]
+        doc['improvement'] = improves(self)
         return doc
+
+
+def improves(report: TuneReport) -> bool:
+    """Whether the tuned set is an improvement to present: it changes a value, and with
+    cross-validation its held-out F1 is above the defaults' on the same frames (without, one
+    scene, there is nothing to tell it by)."""
+    if not report.tuned:
+        return False
+    if report.cv_f1_tuned is None or report.cv_f1_defaults is None:
+        return True
+    return report.cv_f1_tuned > report.cv_f1_defaults
+
+
+def not_an_improvement(report: TuneReport) -> str:
+    """The plain sentence for a tuned set that does not beat the defaults on held-out scenes
+    ('' when it does, or changes nothing)."""
+    if not report.tuned or improves(report):
+        return ''
+    return (f'not an improvement: the tuned set scores {_fmt(report.cv_f1_tuned)} cross-validated '
+            f'F1 against {_fmt(report.cv_f1_defaults)} for the defaults on the held-out scenes; '
+            f'keep the defaults')
 
 
 def tune(frames: Sequence[LabelledFrame], engine, trials: int, seed: int = 0,
@@ -302,8 +331,9 @@ def _fmt(value: Optional[float]) -> str:
     return 'n/a' if value is None else f'{value:.4f}'
 
 
-def params_yaml(report: TuneReport, dataset_text: str) -> str:
-    """The parameter file: node layout, only the changed keys, a header with data and scores."""
+def params_yaml(report: TuneReport, dataset_text: str, write_tuned: bool = False) -> str:
+    """The parameter file: node layout, only the changed keys (none when the tuned set is not
+    an improvement, unless ``write_tuned``), a header with data and scores."""
     now = datetime.datetime.now(datetime.timezone.utc).strftime('%Y-%m-%d %H:%M UTC')
     scenes = ', '.join(f'{s} ({n} frame(s))' for s, n in report.scenes.items())
     cv = (f'leave-one-scene-out CV ground F1 (pooled over held-out scenes): tuned '
@@ -319,6 +349,15 @@ def params_yaml(report: TuneReport, dataset_text: str) -> str:
               f'{_fmt(report.train_f1_tuned)}, defaults {_fmt(report.train_f1_defaults)}.',
               cv + '.',
               'Only the keys that differ from the defaults are listed.']
+    verdict = not_an_improvement(report)
+    if verdict and not write_tuned:
+        header += [f'NOT AN IMPROVEMENT: the tuned set scores {_fmt(report.cv_f1_tuned)} '
+                   f'cross-validated F1 against {_fmt(report.cv_f1_defaults)} for the defaults. '
+                   'This file keeps the defaults (it sets no parameter). The tuned values, not '
+                   'set: ' + ', '.join(f'{k}: {v}' for k, v in report.tuned.items()) + '.']
+        return render_param_overrides({}, header)
+    if verdict:
+        header += [f'NOT AN IMPROVEMENT ({verdict}); written as asked (--write-tuned).']
     return render_param_overrides(report.tuned, header)
 
 
@@ -381,6 +420,10 @@ def add_parser(sub) -> None:
     p.add_argument('--json', action='store_true', help='print the report as JSON')
     p.add_argument('--out', required=True, metavar='params.yaml', help='parameter file to write')
     p.add_argument('--force', action='store_true', help='overwrite --out if it exists')
+    p.add_argument('--write-tuned', action='store_true',
+                   help='write the tuned values even when their cross-validated F1 does not beat '
+                   'the defaults\' (otherwise the file then keeps the defaults and lists them as '
+                   'comments)')
     p.set_defaults(func=cmd_tune)
 
 
@@ -412,16 +455,30 @@ def cmd_tune(args) -> int:
                f'{",".join(map(str, ground))}; ignored '
                f'{",".join(map(str, ignored))}')
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(params_yaml(report, dataset))
+    out.write_text(params_yaml(report, dataset, args.write_tuned))
+    written = report.tuned if improves(report) or args.write_tuned else {}
+    verdict = not_an_improvement(report)
+    if verdict:
+        print(f'gp-ground-seg tune: warning: {verdict}', file=sys.stderr)
     if args.json:
-        print(json.dumps(dict(report.as_dict(), out=str(out), labels=dataset), indent=2))
+        print(json.dumps(dict(report.as_dict(), out=str(out), labels=dataset, written=written),
+                         indent=2))
         return 0
-    print(f'tuned on {len(frames)} frame(s), {len(report.scenes)} scene(s); {args.trials} '
+    _print_report(report, args.trials)
+    if verdict:
+        print(f'  {verdict}')
+    what = (f'{len(written)} changed key(s)' if written else 'the defaults: no key set'
+            + ('; the tuned values are in its comments' if verdict else ''))
+    print(f'wrote {out} ({what})')
+    return 0
+
+
+def _print_report(report: TuneReport, trials: int) -> None:
+    print(f'tuned on {len(report.frames)} frame(s), {len(report.scenes)} scene(s); {trials} '
           f'trials per study on {report.engine}')
     print(f'  training F1 (all frames): tuned {_fmt(report.train_f1_tuned)}, defaults '
           f'{_fmt(report.train_f1_defaults)}')
     print(f'  leave-one-scene-out CV F1: tuned {_fmt(report.cv_f1_tuned)}, defaults '
           f'{_fmt(report.cv_f1_defaults)}')
-    print(f'  changed: {report.tuned or "nothing (the defaults won)"}')
-    print(f'wrote {out}')
-    return 0
+    print(f'  {"changed" if improves(report) else "tuned values"}: '
+          f'{report.tuned or "nothing (the defaults won)"}')

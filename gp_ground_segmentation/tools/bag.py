@@ -9,7 +9,9 @@ Reading and writing use ``rosbags`` (AnyReader: ROS 2 mcap/sqlite3 directories o
 ``rclpy.serialization`` so the replay runs exactly the message classes and the code path of the
 node (``pipeline.process_cloud``), with the parameters of the node's YAML file
 (``config.load_params_file``). ROS 1 messages are decoded by rosbags and copied into the rclpy
-class.
+class. Raw Velodyne data, a bag of ``velodyne_msgs/VelodyneScan`` or a ``.pcap`` capture, is
+decoded into clouds by ``packets.py`` (velodyne-decoder, an optional extra), and an IMU topic of
+the bag can level each cloud (``--imu-topic``, ``bag_imu.py``).
 
 An output bag is written into a hidden temporary sibling directory and renamed into place only
 after the writer closed cleanly, so an interrupted or failed replay never leaves a bag that looks
@@ -170,10 +172,13 @@ def _pointfile_cloud(path: Path, index: int, frame_id: str = SYNTHETIC_FRAME_ID)
 
 
 class FrameSource:
-    """Iterate the PointCloud2 frames of a bag topic or of a list of point files.
+    """Iterate the PointCloud2 frames of a bag topic (clouds, or Velodyne packets decoded scan
+    by scan), of a Velodyne .pcap (decoded rotation by rotation) or of a list of point files.
 
-    Use as a context manager. ``count`` is known before iterating (for the progress bar). Opening
-    checks the topic exists, carries PointCloud2 and has messages; problems raise BagError.
+    Use as a context manager. ``count`` is known before iterating (for the progress bar; a pcap
+    is decoded once to count its rotations). Opening checks the topic exists, carries
+    PointCloud2 or VelodyneScan and has messages, and decodes a packet bag's first scan;
+    problems raise BagError. ``cloud_topic``: the topic of the clouds it yields.
     """
 
     def __init__(self, inputs: Sequence, topic: Optional[str] = None,

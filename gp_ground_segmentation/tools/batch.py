@@ -1,13 +1,13 @@
 # SPDX-License-Identifier: Apache-2.0
 """``gp-ground-seg batch``: replay many inputs, one task each, in-process or on Dask.
 
-Each input (a bag, or a directory of bags' worth of .bin/.pcd files) is one task that runs
-:func:`bag.replay` unchanged, so its output bag ``DIR/<input name>/`` is byte for byte what
-``gp-ground-seg replay INPUT DIR/<input name>`` writes (ground, obstacle and surface clouds;
-diagnostics carry timings). ``replay`` writes into a hidden sibling and renames it into place, so
-an output directory is either complete or absent: re-running skips inputs whose output exists
-(``force`` redoes them), and an interrupted batch leaves nothing half-written (hidden leftovers of
-killed workers are removed on the way out).
+Each input (a bag, a Velodyne .pcap, or a directory of bags' worth of .bin/.pcd files) is one
+task that runs :func:`bag.replay` unchanged, so its output bag ``DIR/<input name>/`` is byte for
+byte what ``gp-ground-seg replay INPUT DIR/<input name>`` writes (ground, obstacle and surface
+clouds, the labelled one with ``--labeled``; diagnostics carry timings). ``replay`` writes into
+a hidden sibling and renames it into place, so an output directory is either complete or absent:
+re-running skips inputs whose output exists (``force`` redoes them), and an interrupted batch
+leaves nothing half-written (hidden leftovers of killed workers are removed on the way out).
 
 A failing input (corrupt bag, wrong type, missing topic) is a row with status ``failed`` and
 replay's one-line message; the other tasks finish. ``DIR/summary.json`` and ``DIR/summary.csv``
@@ -34,7 +34,7 @@ import numpy as np
 from .bag import FrameSource, Progress, load_params, replay
 from .engine import add_engine_arguments, open_engine, peak_rss_mb
 from .errors import EXPECTED_ERRORS, CliError, one_line
-from .options import add_labeled_option, add_storage_option
+from .options import add_input_options, add_labeled_option, add_storage_option
 
 PROGRESS_TOPIC = 'gp-ground-seg-batch-progress'
 BAG_SUFFIXES = ('.mcap', '.db3', '.bag', '.pcap')  # output DIR/<name without them>
@@ -326,12 +326,11 @@ def add_parser(sub) -> None:
                        'process or on Dask; writes DIR/summary.json and DIR/summary.csv. Inputs '
                        'whose complete output exists are skipped (--force redoes them). Exit '
                        'status 1 if any input failed.')
-    p.add_argument('inputs', nargs='+', metavar='INPUT', help='bag (directory or file) or a '
-                   'directory of .bin/.pcd files; one output bag each')
+    p.add_argument('inputs', nargs='+', metavar='INPUT', help='bag (directory or file), '
+                   'Velodyne .pcap, or a directory of .bin/.pcd files; one output bag each')
     p.add_argument('--out', required=True, metavar='DIR', help='output directory')
     add_engine_arguments(p)
-    p.add_argument('--params', metavar='YAML', help='node parameter file (config/params.yaml)')
-    p.add_argument('--topic', default=None, help='input PointCloud2 topic (as for replay)')
+    add_input_options(p)
     add_storage_option(p)
     p.add_argument('--force', action='store_true', help='redo inputs whose output exists')
     add_labeled_option(p)

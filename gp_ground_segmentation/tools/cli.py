@@ -47,7 +47,7 @@ from .errors import EXIT_ERROR, EXPECTED_ERRORS, CliError, one_line
 from .evaluation import labelled_ground_truth, pooled_metrics, truth_metrics
 from .io import read_semantickitti_labels
 from .options import (add_frame_id_option, add_label_class_arguments, add_labeled_option,
-                      add_storage_option, label_classes, no_ground_note)
+                      add_input_options, add_storage_option, label_classes, no_ground_note)
 from .plot import plot_frame
 
 
@@ -210,6 +210,14 @@ def cmd_eval(args) -> int:
 # replay
 # ---------------------------------------------------------------------------------------------
 
+REPLAY_DESCRIPTION = ('Segment every PointCloud2 of a bag (ROS 2 mcap/sqlite3 directory or file, '
+                      'ROS 1 .bag), every scan of a Velodyne packet bag or .pcap capture, or '
+                      '.bin/.pcd files (stamps i*0.1 s from 0, --frame-id) with the node '
+                      'pipeline, and write a ROS 2 bag with <topic>/ground, <topic>/obstacles, '
+                      '<topic>/ground_surface (unless publish_ground_surface is false; see '
+                      '--output-prefix), <topic>/labeled (--labeled) and /diagnostics.')
+
+
 def cmd_replay(args) -> int:
     inputs, out = args.inputs[:-1], args.inputs[-1]
     if not inputs:
@@ -299,17 +307,22 @@ def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog='gp-ground-seg', description='Offline tools for the GP ground '
                      'segmenter: evaluate, replay bags, plot a frame.')
     sub = parser.add_subparsers(dest='command', required=True, parser_class=_Parser)
+    for add in (_add_eval_parser, _add_replay_parser, _add_plot_parser, _add_make_sample_parser,
+                batch.add_parser, tune.add_parser, play.register):  # play.register: play, hz
+        add(sub)
+    parser.subcommands = dict(sub.choices)
+    return parser
 
+
+def _add_eval_parser(sub) -> None:
     p = sub.add_parser('eval', help='segment point files / bag frames and print metrics',
                        description=EVAL_DESCRIPTION)
-    p.add_argument('files', nargs='+', metavar='FILE', help='.bin, .pcd, BAG:INDEX or BAG')
+    p.add_argument('files', nargs='+', metavar='FILE', help='.bin, .pcd, .pcap, BAG, BAG:INDEX')
     p.add_argument('--labels', nargs='+', metavar='FILE.label',
                    help='.label file(s) (uint32 per point, class in the low 16 bits), one per '
                    'frame in order')
     add_label_class_arguments(p)
-    p.add_argument('--params', metavar='YAML', help='node parameter file (config/params.yaml)')
-    p.add_argument('--topic', default=None, help='PointCloud2 topic for bag inputs '
-                   '(default /velodyne_points)')
+    add_input_options(p)
     p.add_argument('--json', action='store_true', help='print JSON instead of text')
     p.add_argument('--cold', action='store_true',
                    help='a fresh segmenter per frame (no theta warm start; the cold rows of '
@@ -319,20 +332,16 @@ def build_parser() -> argparse.ArgumentParser:
                    'are those of the first run)')
     p.set_defaults(func=cmd_eval)
 
+
+def _add_replay_parser(sub) -> None:
     p = sub.add_parser('replay', help='bag in -> ground/obstacles/surface/diagnostics bag out',
-                       description='Segment every PointCloud2 of a bag (ROS 2 mcap/sqlite3 '
-                       'directory or file, ROS 1 .bag) or of .bin/.pcd files (stamps i*0.1 s '
-                       'from 0, --frame-id) with the node pipeline, and write a ROS 2 bag with '
-                       '<topic>/ground, <topic>/obstacles, <topic>/ground_surface (unless '
-                       'publish_ground_surface is false; see --output-prefix) and /diagnostics.')
+                       description=REPLAY_DESCRIPTION)
     p.add_argument('inputs', nargs='+', metavar='IN ... OUT_BAG',
-                   help='input bag, point files or a directory of them; last: the output bag')
-    p.add_argument('--topic', default=None,
-                   help='input PointCloud2 topic (default /velodyne_points; if absent and the '
-                   'bag has exactly one PointCloud2 topic, that one)')
-    p.add_argument('--params', metavar='YAML', help='node parameter file (config/params.yaml)')
-    add_storage_option(p)
+                   help='input bag, Velodyne .pcap, point files or a directory of them; last: '
+                   'the output bag')
+    add_input_options(p)
     p.add_argument('--force', action='store_true', help='overwrite OUT_BAG if it exists')
+    add_storage_option(p)
     p.add_argument('--max-frames', type=int, metavar='K', help='stop after K frames')
     p.add_argument('--output-prefix', metavar='PREFIX', default=None,
                    help='output topics PREFIX/ground, PREFIX/obstacles and PREFIX/ground_surface '
@@ -348,6 +357,8 @@ def build_parser() -> argparse.ArgumentParser:
                    'imu_max_age_s keep the static pose and are counted in the summary')
     p.set_defaults(func=cmd_replay)
 
+
+def _add_plot_parser(sub) -> None:
     p = sub.add_parser('plot', help='plot one frame (side view of a segment + bird\'s-eye view)',
                        description='FRAME: a .bin/.pcd file or BAG:INDEX (e.g. '
                        'data/kitti00_sample:0).')
@@ -361,14 +372,15 @@ def build_parser() -> argparse.ArgumentParser:
                    help='half-width of the bird\'s-eye panels in m (default: fitted to the data, '
                    'the 98th percentile of max(|x|, |y|) of the points plus 5 %%, rounded up)')
     add_label_class_arguments(p)
-    p.add_argument('--params', metavar='YAML', help='node parameter file (config/params.yaml)')
-    p.add_argument('--topic', default=None, help='PointCloud2 topic for a bag FRAME')
+    add_input_options(p)
     p.add_argument('--out', required=True, metavar='FIG.png',
                    help='figure file to write (PNG; .svg and .pdf work too); its parent '
                    'directories are created')
     p.add_argument('--force', action='store_true', help='overwrite FIG.png if it exists')
     p.set_defaults(func=cmd_plot)
 
+
+def _add_make_sample_parser(sub) -> None:
     p = sub.add_parser('make-sample', help='write the small sample bag shipped in data/',
                        description='Copy the first messages of a bag topic unchanged (raw '
                        'bytes, same bag times) into a new zstd-compressed mcap bag, as '
@@ -380,12 +392,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--topic', default='/velodyne_points',
                    help='topic whose messages are copied (default /velodyne_points)')
     p.set_defaults(func=cmd_make_sample)
-
-    batch.add_parser(sub)
-    tune.add_parser(sub)
-    play.register(sub)  # play, hz
-    parser.subcommands = dict(sub.choices)
-    return parser
 
 
 def main(argv=None) -> int:

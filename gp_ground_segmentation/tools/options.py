@@ -5,13 +5,15 @@
   ``--ignore-classes``; eval, plot, tune), resolved by :func:`label_classes` with the ontologies
   and protocols of :mod:`.evaluation`;
 * the frame id of clouds made from point files (``--frame-id``; replay, play);
+* the input topic of a bag and the node's parameter file (``--topic``, ``--params``; eval,
+  replay, plot, batch);
 * the labelled cloud among the outputs (``--labeled``) and the output bags' storage
   (``--storage``; replay, batch).
 """
 
 from __future__ import annotations
 
-from .bag import SYNTHETIC_FRAME_ID
+from .bag import DEFAULT_TOPIC, SYNTHETIC_FRAME_ID
 from .errors import CliError
 from .evaluation import DEFAULT_PROTOCOL, ONTOLOGIES, PROTOCOLS
 
@@ -88,3 +90,15 @@ def add_storage_option(parser) -> None:
     parser.add_argument('--storage', choices=('mcap', 'sqlite3'), default='mcap',
                         help='storage of the output bag(s): mcap (one .mcap file, default) or '
                         'sqlite3 (.db3, the rosbag2 default before Iron)')
+
+
+def add_input_options(parser) -> None:
+    """--topic (the bag topic read: clouds or Velodyne packets) and --params (the node's
+    parameter file)."""
+    parser.add_argument('--params', metavar='YAML',
+                        help='node parameter file (config/params.yaml)')
+    parser.add_argument('--topic', default=None,
+                        help='input topic of a bag: sensor_msgs/PointCloud2, or raw Velodyne '
+                        'packets (velodyne_msgs/VelodyneScan, decoded; pip install '
+                        f"'gp_ground_segmentation[packets]') (default {DEFAULT_TOPIC}; if the bag "
+                        'has none, its one PointCloud2 topic, else its one VelodyneScan topic)')

@@ -323,7 +323,9 @@ def register(sub) -> None:
                    help='bag, point files or a directory of them')
     p.add_argument('--topic', default=None,
                    help='PointCloud2 topic to read and to publish on (default /velodyne_points; '
-                   'if absent and the bag has exactly one PointCloud2 topic, that one)')
+                   'if absent, the bag\'s one PointCloud2 topic, else its one Velodyne packet '
+                   'topic, whose decoded clouds go out on the driver\'s cloud topic, e.g. '
+                   '/velodyne_points for /velodyne_packets)')
     p.add_argument('--rate', type=float, default=1.0, metavar='X',
                    help='play X times faster than recorded (default 1)')
     p.add_argument('--loop', action='store_true', help='start again at the end, until Ctrl-C')
@@ -349,8 +351,7 @@ def register(sub) -> None:
                        'every PERIOD seconds, with a one-line summary of the last message '
                        '(points and frame_id of a PointCloud2, level and message of '
                        'diagnostics). Ctrl-C or --duration ends it with a summary.')
-    p.add_argument('topics', nargs='+', metavar='TOPIC',
-                   help='topic names (e.g. /ground /obstacles /diagnostics)')
+    p.add_argument('topics', nargs='+', metavar='TOPIC', help='e.g. /ground /obstacles')
     p.add_argument('--window', type=_positive_int, default=50, metavar='N',
                    help='rate over the last N messages (default 50)')
     p.add_argument('--period', type=_positive_float, default=1.0, metavar='S',

@@ -162,6 +162,13 @@ EVAL_DESCRIPTION = ('Segment each input (KITTI .bin, .pcd, BAG:INDEX or a whole 
                     '(TP/FP/FN summed).')
 
 
+SLOW_WARM_UP_S = 5.0  # a warm-up this long compiled kernels (a cache load takes ~1 s)
+
+
+def _eval_note(text: str) -> None:
+    print(f'gp-ground-seg eval: note: {text}', file=sys.stderr)
+
+
 def cmd_eval(args) -> int:
     if args.repeat < 1:
         raise CliError('--repeat must be at least 1')
@@ -174,8 +181,11 @@ def cmd_eval(args) -> int:
         raise CliError(f'{len(labels_files)} label file(s) given for {frame_count} frame(s); '
                        'give one --labels file per frame')
     segmenter = GroundSegmenter(params)
-    warm_up_before_timing(lambda text: print(f'gp-ground-seg eval: note: {text}',
-                                             file=sys.stderr), segmenter)
+    warm_up_s = warm_up_before_timing(_eval_note, segmenter)
+    if warm_up_s > SLOW_WARM_UP_S:  # say why nothing happened for so long
+        _eval_note(f'warm-up {warm_up_s:.1f} s before the first frame (numba compiled its '
+                   'kernels: a new install; later runs load them from its cache); not in the '
+                   'timings')
     frames = []
     for k, (name, msg) in enumerate(_eval_frames(args.files, args.topic)):
         if labels_files and k >= len(labels_files):

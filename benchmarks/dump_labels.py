@@ -59,6 +59,7 @@ VARIANTS = {
     'options_flipped': ({'plateau_ends_on_drop': True, 'plateau_from_sensor_ground': False,
                          'outlier_worst_per_segment': True, 'density_in_flat_branch': True,
                          'prior_mean_at_anchor': False},),
+    'learn_every_frame': ({'optimizer_interval_frames': 1},),  # warm frames learn (cap 2)
     'pose': ({'sensor_x_m': 0.4, 'sensor_z_m': 0.3, 'sensor_roll_rad': 0.02,
               'sensor_pitch_rad': -0.03},),
 }

@@ -11,13 +11,11 @@ import math
 
 import numpy as np
 import pytest
-import scipy
-from scipy.optimize import minimize
 from scipy.stats import multivariate_normal
 
 from gp_ground_segmentation.core import gp_compiled
-from gp_ground_segmentation.core.gp import (FrameGP, GroundAnchor, _lbfgsb_first_iteration,
-                                            length_scale_factors, paciorek_kernel)
+from gp_ground_segmentation.core.gp import (FrameGP, GroundAnchor, length_scale_factors,
+                                            paciorek_kernel)
 
 BOUNDS = [(0.01, 20.0), (0.05, 200.0), (0.005, 2.0)]
 
@@ -430,94 +428,6 @@ def test_fit_respects_evaluation_cap():
             gp.fit(theta0, BOUNDS, cap)
             worst[cap] = max(worst.get(cap, 0), gp.factorisations - before)
     assert all(worst[cap] <= cap for cap in worst), worst
-
-
-class _Stop(Exception):
-    """Raised by a recording objective at its evaluation cap (as FrameGP.fit does)."""
-
-
-def _recorded_first_iteration(fun, x0, bounds, cap, use_scipy):
-    """(points evaluated, iterations) of scipy's L-BFGS-B capped at ``cap`` evaluations, or of
-    gp._lbfgsb_first_iteration on the same problem."""
-    points = []
-
-    def objective(x):
-        if len(points) >= cap:
-            raise _Stop
-        points.append(np.array(x, dtype=np.float64))
-        return fun(x)
-
-    if not use_scipy:
-        return points, _lbfgsb_first_iteration(objective, x0, bounds, cap)
-    try:
-        res = minimize(objective, x0, jac=True, method='L-BFGS-B', bounds=bounds,
-                       options={'maxfun': cap, 'maxiter': cap})
-        return points, int(res.nit)
-    except _Stop:
-        return points, 0
-
-
-# The scipy releases whose L-BFGS-B the closed form was checked against bit for bit (its C
-# translation since 1.15). A later release may round differently by an ulp without being
-# wrong (nor is the closed form then): there the points must agree to 1e-12, relative.
-SCIPY_CHECKED_BIT_FOR_BIT = ('1.17.',)
-
-
-def _assert_same_first_iteration(fun, x0, bounds, cap):
-    ref_points, ref_iterations = _recorded_first_iteration(fun, x0, bounds, cap, True)
-    points, iterations = _recorded_first_iteration(fun, x0, bounds, cap, False)
-    assert len(points) == len(ref_points)
-    for p, q in zip(points, ref_points):
-        if scipy.__version__.startswith(SCIPY_CHECKED_BIT_FOR_BIT):
-            np.testing.assert_array_equal(p, q)  # bit for bit
-        else:
-            np.testing.assert_allclose(p, q, rtol=1e-12, atol=1e-300)
-    assert iterations == ref_iterations
-    return len(points)
-
-
-def test_first_iteration_equals_scipy_on_random_problems():
-    """The closed-form first L-BFGS-B iteration and scipy's: the same points to the bit, and
-    the same iteration count, on smooth random problems in random boxes (some variables at a
-    bound, some bounds equal, steps that hit one, two or all bounds, gradients from 1e-6 up)."""
-    rng = np.random.default_rng(5)
-    counts = {1: 0, 2: 0}
-    for _ in range(1500):
-        a = rng.normal(size=(3, 3))
-        hessian = a @ a.T + rng.uniform(0.01, 3.0) * np.eye(3)
-        linear = rng.normal(size=3) * rng.choice([1e-6, 0.01, 1.0, 10.0])
-        scale = 10 ** rng.uniform(-3, 4)
-
-        def fun(x, hessian=hessian, linear=linear, scale=scale):
-            return (scale * (0.5 * x @ hessian @ x + linear @ x + np.sin(x).sum()),
-                    scale * (hessian @ x + linear + np.cos(x)))
-
-        x0 = rng.normal(size=3)
-        half_width = np.log(rng.choice([1.05, 1.5, 3.0]))
-        lower = x0 - half_width * rng.choice([1.0, 0.0, 2.0], size=3, p=[0.8, 0.1, 0.1])
-        upper = x0 + half_width * rng.choice([1.0, 0.0, 0.5], size=3, p=[0.8, 0.1, 0.1])
-        cap = int(rng.choice([1, 2]))
-        counts[_assert_same_first_iteration(fun, x0, np.stack([lower, upper], 1), cap)] += 1
-    assert counts[2] > 700 and counts[1] > 700  # both outcomes were exercised (741, 759)
-
-
-@pytest.mark.parametrize('seed', range(6))
-def test_first_iteration_equals_scipy_on_gp_problems(seed):
-    """The same on the GP's own objective: -J and -dJ/dlog(theta) in the trust region of
-    x/÷ 1.5 around random starts, as the segmenter's warm-started frames use it."""
-    r, z, d, mask = random_problem(90 + seed, m_count=5, n_count=12)
-    gp = FrameGP(r, z, d, mask)
-    rng = np.random.default_rng(seed)
-
-    def fun(x):
-        lml, grad = gp.lml_and_gradient(x)
-        return -lml, -grad
-
-    for _ in range(10):
-        theta0 = random_theta(rng)
-        bounds = np.log([(max(lo, t / 1.5), min(hi, t * 1.5))
-                         for t, (lo, hi) in zip(theta0, BOUNDS)])
-        assert _assert_same_first_iteration(fun, np.log(theta0), bounds, 2) == 2
 
 
 @pytest.mark.skipif(not gp_compiled.AVAILABLE, reason='numba not installed')

@@ -50,7 +50,6 @@ from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
-from scipy.linalg import blas
 from scipy.optimize import minimize
 
 from . import gp_compiled
@@ -85,194 +84,6 @@ _CACHED_SOLUTIONS = 2
 
 class _BudgetExhausted(Exception):
     """Raised inside the objective to stop L-BFGS-B exactly at the evaluation cap."""
-
-
-# scipy's L-BFGS-B settings that decide its first iteration (scipy.optimize.minimize defaults)
-_LBFGSB_PGTOL = 1e-5  # 'gtol': stop when the projected gradient's largest entry is this small
-_LBFGSB_FTOL = 2.2204460492503131e-09  # 'ftol': stop when the relative decrease is this small
-_LBFGSB_LINE_SEARCH = (1e-3, 0.9)  # its line search's sufficient-decrease and curvature factors
-_EPS = float(np.finfo(np.float64).eps)
-
-
-def _lbfgsb_first_iteration(objective, x0, bounds, max_evaluations) -> int:
-    """What ``scipy.optimize.minimize(objective, x0, jac=True, method='L-BFGS-B', bounds=bounds,
-    options={'maxfun': max_evaluations, 'maxiter': max_evaluations})`` evaluates, for a cap of
-    one or two evaluations and finite bounds ((n, 2) array), without scipy's per-call set-up.
-
-    Its first iteration has no curvature pairs yet (B = I), so its step is the generalized
-    Cauchy point along the projected steepest-descent path, and in a box the line search tries
-    that point first (step 1). The arithmetic below is L-BFGS-B 3.0's (``projgr``, ``cauchy``
-    with col = 0 and theta = 1, ``hpsolb``, the first ``dcsrch`` test), operation for
-    operation, so the points and thus theta are the same to the bit (tests compare with scipy).
-    ``objective`` is called at x0 and, when the cap allows and x0 is not already optimal, at
-    that point. Returns the iteration count scipy would report (0 when it would stop at the
-    cap: then ``objective`` raised at a third call, which this function does not make).
-    """
-    lower = [float(v) for v in bounds[:, 0]]
-    upper = [float(v) for v in bounds[:, 1]]
-    x = [min(max(float(v), lo), hi) for v, lo, hi in zip(x0, lower, upper)]  # np.clip
-    f0, g0 = objective(np.array(x))
-    f0, g0 = float(f0), [float(v) for v in g0]
-    if _projected_gradient_norm(x, g0, lower, upper) <= _LBFGSB_PGTOL:
-        return 0  # converged at x0
-    if max_evaluations < 2:
-        return 0
-    x1 = _cauchy_point(x, g0, lower, upper)
-    d = [b - a for a, b in zip(x, x1)]
-    gd0 = _dot(g0, d)
-    if gd0 >= 0.0:
-        return 0  # no descent direction: scipy stops (abnormal termination), one evaluation
-    f1, g1 = objective(np.array(x1))
-    f1, g1 = float(f1), [float(v) for v in g1]
-    ftol, gtol = _LBFGSB_LINE_SEARCH
-    gtest = ftol * gd0
-    ftest = f0 + 1.0 * gtest
-    gd1 = _dot(g1, d)
-    # dcsrch at step 1 = its maximum: accepted ('STP = STPMAX' or convergence) or another step
-    accepted = f1 <= ftest and (gd1 <= gtest or abs(gd1) <= gtol * (-gd0))
-    if not accepted:
-        return 0  # scipy's line search asks for a third point: the cap stops it
-    if _projected_gradient_norm(x1, g1, lower, upper) <= _LBFGSB_PGTOL:
-        return 1
-    ddum = max(abs(f0), abs(f1), 1.0)
-    factr = _LBFGSB_FTOL / _EPS
-    return 1 if (f0 - f1) <= _EPS * factr * ddum else 0
-
-
-def _dot(a, b) -> float:
-    total = 0.0
-    for u, v in zip(a, b):
-        total += u * v
-    return total
-
-
-def _projected_gradient_norm(x, g, lower, upper) -> float:
-    """L-BFGS-B's ``projgr``: the largest |projected gradient| entry (both bounds finite)."""
-    norm = 0.0
-    for xi, gi, lo, hi in zip(x, g, lower, upper):
-        if gi < 0.0:
-            gi = max(xi - hi, gi)
-        else:
-            gi = min(xi - lo, gi)
-        norm = max(norm, abs(gi))
-    return norm
-
-
-def _cauchy_point(x, g, lower, upper):
-    """L-BFGS-B's ``cauchy`` for B = I (no corrections yet, theta = 1), every variable boxed:
-    the first minimiser of g^T s + |s|^2 / 2 along the projected path P(x - t g)."""
-    n = len(x)
-    d = [0.0] * n
-    breaks, order = [], []  # breakpoint t of each moving variable, and its index
-    bkmin, ibkmin = 0.0, -1
-    f1 = 0.0
-    for i in range(n):
-        neggi = -g[i]
-        tl, tu = x[i] - lower[i], upper[i] - x[i]
-        if upper[i] - lower[i] <= 0.0:
-            fixed = True  # a variable with equal bounds never moves
-        elif tl <= 0.0:
-            fixed = neggi <= 0.0
-        elif tu <= 0.0:
-            fixed = neggi >= 0.0
-        else:
-            fixed = abs(neggi) <= 0.0
-        if fixed:
-            continue
-        d[i] = neggi
-        f1 = f1 - neggi * neggi
-        if neggi < 0.0:
-            breaks.append(tl / (-neggi))
-        elif neggi > 0.0:
-            breaks.append(tu / neggi)
-        else:
-            continue
-        order.append(i)
-        if len(breaks) == 1 or breaks[-1] < bkmin:
-            bkmin, ibkmin = breaks[-1], len(breaks) - 1
-    xcp = list(x)
-    nbreak = len(breaks)
-    if nbreak == 0:
-        return xcp
-    f2 = -1.0 * f1
-    f2_org = f2
-    dtm = -f1 / f2
-    tsum = 0.0
-    nleft = nbreak
-    step = 1
-    tj = 0.0
-    while True:
-        tj0 = tj
-        if step == 1:
-            tj, ibp = bkmin, order[ibkmin]
-        else:
-            if step == 2 and ibkmin != nbreak - 1:
-                breaks[ibkmin], order[ibkmin] = breaks[nbreak - 1], order[nbreak - 1]
-            _hpsolb(nleft, breaks, order, step - 2)
-            tj, ibp = breaks[nleft - 1], order[nleft - 1]
-        dt = tj - tj0
-        if dtm < dt:
-            break
-        tsum = tsum + dt
-        nleft -= 1
-        step += 1
-        dibp = d[ibp]
-        d[ibp] = 0.0
-        if dibp > 0.0:
-            zibp = upper[ibp] - x[ibp]
-            xcp[ibp] = upper[ibp]
-        else:
-            zibp = lower[ibp] - x[ibp]
-            xcp[ibp] = lower[ibp]
-        if nleft == 0 and nbreak == n:
-            return xcp  # every variable at a bound
-        dibp2 = dibp * dibp
-        f1 = f1 + dt * f2 + dibp2 - 1.0 * dibp * zibp
-        f2 = f2 - 1.0 * dibp2
-        f2 = max(_EPS * f2_org, f2)
-        if nleft > 0:
-            dtm = -f1 / f2
-            continue
-        dtm = 0.0  # every moving variable had a breakpoint ('bnded')
-        break
-    if dtm <= 0.0:
-        dtm = 0.0
-    tsum = tsum + dtm
-    # xcp + tsum d with the BLAS daxpy L-BFGS-B calls: its kernel may fuse the multiply-add
-    return [float(v) for v in blas.daxpy(np.array(d), np.array(xcp), a=tsum)]
-
-
-def _hpsolb(n, t, order, iheap):
-    """L-BFGS-B's ``hpsolb`` on t[:n] (0-based): heapify when ``iheap`` is 0, then move the
-    least element to t[n - 1] (ties: the order L-BFGS-B picks, which decides its round-off)."""
-    if iheap == 0:
-        for k in range(1, n):
-            ddum, indxin = t[k], order[k]
-            i = k + 1  # 1-based heap position
-            while i > 1:
-                j = i // 2
-                if ddum < t[j - 1]:
-                    t[i - 1], order[i - 1] = t[j - 1], order[j - 1]
-                    i = j
-                else:
-                    break
-            t[i - 1], order[i - 1] = ddum, indxin
-    if n > 1:
-        i = 1
-        out, indxou = t[0], order[0]
-        ddum, indxin = t[n - 1], order[n - 1]
-        while True:
-            j = i + i
-            if j <= n - 1:
-                if t[j] < t[j - 1]:
-                    j = j + 1
-                if t[j - 1] < ddum:
-                    t[i - 1], order[i - 1] = t[j - 1], order[j - 1]
-                    i = j
-                    continue
-            break
-        t[i - 1], order[i - 1] = ddum, indxin
-        t[n - 1], order[n - 1] = out, indxou
 
 
 def length_scale_factors(slope, density_rel, *, slope_floor, slope_ceiling,
@@ -748,15 +559,10 @@ class FrameGP:
 
         log_bounds = np.log(np.asarray(bounds, dtype=np.float64))
         try:
-            if max_evaluations <= 2 and np.all(np.isfinite(log_bounds)):
-                # the warm-started frames: scipy's first iteration in closed form (same points)
-                info['iterations'] = _lbfgsb_first_iteration(objective, np.log(theta0),
-                                                             log_bounds, max_evaluations)
-            else:
-                res = minimize(objective, np.log(theta0), jac=True, method='L-BFGS-B',
-                               bounds=log_bounds, options={'maxfun': int(max_evaluations),
-                                                           'maxiter': int(max_evaluations)})
-                info['iterations'] = int(res.nit)
+            res = minimize(objective, np.log(theta0), jac=True, method='L-BFGS-B',
+                           bounds=log_bounds, options={'maxfun': int(max_evaluations),
+                                                       'maxiter': int(max_evaluations)})
+            info['iterations'] = int(res.nit)
         except _BudgetExhausted:
             pass
         except _NUMERICAL_ERRORS + (RuntimeError,):  # RuntimeError: scipy's own failures

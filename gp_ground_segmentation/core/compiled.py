@@ -1,27 +1,26 @@
 # SPDX-License-Identifier: Apache-2.0
 """numba kernels of the core beside their numpy references: compile one, run one.
 
-Each stage compiled through here (the valid points, grid pass, line growing, plateau state
-machine, length factors, outlier pass and its wide-terrain rule, label pass, structure
-selection and look-ups, surface offsets and rows, and smaller ones: ``GroundSegmenter.warm_up``
-lists them) keeps a numpy reference that gives the same output, bit for bit (tests compare
-them), used without numba or when a kernel fails. Kernels are cached on disk (``cache=True``,
-see gp_compiled.py for where) and release the GIL (``nogil``).
-
-Because the outputs are the same, a kernel need not be ready to be asked for: :func:`run` calls
-it when it is compiled (or loaded from numba's cache) for the arguments' types, and otherwise
-returns the reference's result and has one background thread compile it. So the first run of
-a new install does not wait the ~16-20 s (2 cores) of these compilations: its first frames
-take the numpy path meanwhile, and later processes load them from the cache within their first
-frame or ``GroundSegmenter.warm_up()``. :func:`wait` blocks until the queued compilations are done
-(tests, benchmarks). The GP step (gp_compiled.py) is not here: its compiled and numpy results
-differ in round-off, so it is compiled before use.
+Every compiled stage is a :class:`Twin`, part of a row of the stage table (core/stages.py): a
+numpy reference and a kernel with the same arguments and outputs. An ``exact`` twin's outputs
+are the same bit for bit (the twin tests compare them on real frames), so a kernel need not be
+ready to be asked for: :func:`run` calls it when it is compiled (or loaded from numba's disk
+cache) for the arguments' types, and otherwise returns the reference's result and has one
+background thread compile it. A new install's first frames take the numpy path while the
+compilations (~16-20 s on 2 cores) run; later processes load them from the cache. The GP step's
+twins are equal only to round-off: they are compiled before use instead (``warm_up``), so a
+stream's numbers never depend on when a compilation finished. Kernels are cached on disk
+(``cache=True``: ``__pycache__`` next to the module when writable, else numba's user cache
+directory; ``NUMBA_CACHE_DIR`` overrides both) and release the GIL (``nogil``). :func:`wait`
+blocks until the queued compilations are done (tests, benchmarks).
 """
 
 from __future__ import annotations
 
 import queue
 import threading
+from dataclasses import dataclass
+from typing import Callable, Optional
 
 import numpy as np
 
@@ -30,18 +29,81 @@ try:  # numba is a regular dependency, but the package must still work without i
 except ImportError:  # pragma: no cover - the numpy references are used instead
     numba = None
 
-__all__ = ['AVAILABLE', 'compile_later', 'failed', 'kernel', 'mark_failed', 'run',
-           'sort_in_place', 'wait']
+__all__ = ['AVAILABLE', 'Stage', 'Twin', 'call_later', 'compile_later', 'failed', 'kernel',
+           'mark_failed', 'run', 'sort_in_place', 'wait']
 
 AVAILABLE = numba is not None
 
 _lock = threading.Lock()
-_queued = set()  # (kernel, signature) given to the compiler thread, done or not
+_queued = set()  # (kernel, signature) or (function, 'call') given to the compiler thread
 _failed = set()  # kernels that did not compile: the reference from then on
 _ready = set()  # (kernel, _argument_key) that has a compiled signature: no typing needed
 _INT64_MIN, _INT64_MAX = -2 ** 63, 2 ** 63 - 1
 _jobs: queue.Queue = queue.Queue()
 _compiler = None  # the background thread, started on first need
+
+
+@dataclass(frozen=True, eq=False)
+class Twin:
+    """A compiled kernel and its numpy reference, registered once by its stage (the stage
+    table, core/stages.py) and run through :meth:`run`.
+
+    ``reference(*args)`` and ``kernel(*args)`` take the same arguments and return the same
+    outputs: bit for bit when ``exact`` (then :meth:`run` takes the reference until the kernel
+    is compiled for the arguments' types, :func:`run`), else to round-off (the GP step: the
+    kernel is compiled before use, by ``GroundSegmenter.warm_up`` or its first call, and its
+    errors reach the caller, which falls back). ``examples(dtype)`` gives the arguments of
+    every signature a frame of points in ``dtype`` passes (warm_up); ``background``: warm_up
+    leaves this round-off kernel to the background compiler unless asked for it now;
+    ``outputs``, for a kernel that leaves scratch in its outputs, what of them carries the
+    result. ``kernel`` is None without numba.
+    """
+
+    name: str
+    reference: Callable
+    kernel: Optional[Callable]
+    examples: Callable
+    exact: bool = True
+    background: bool = False
+    outputs: Optional[Callable] = None  # (args, outputs) -> what the twin tests compare
+
+    def run(self, use_compiled: bool, *args):
+        """The kernel's outputs when ``use_compiled`` (and, if ``exact``, compiled), else the
+        reference's."""
+        if self.exact:
+            return _run(use_compiled, self.kernel, self.reference, *args)
+        if use_compiled and self.kernel is not None:
+            return self.kernel(*args)
+        return self.reference(*args)
+
+    def prepare(self, dtype, now: bool = False) -> None:
+        """warm_up: compile the kernel for every example signature of ``dtype``, now (``now``:
+        round-off twins only) or in the background thread."""
+        if self.kernel is None:
+            return
+        for args in self.examples(dtype):
+            if self.exact:
+                compile_later(self.kernel, *args)
+            elif now:
+                self.kernel(*args)
+            else:
+                call_later(self.kernel, *args)
+
+
+@dataclass(frozen=True)
+class Stage:
+    """A row of the stage table (core/stages.py): a step of a frame, whose it is (``origin``
+    'paper' or 'ours'), the SegmenterParams bool that turns it off (``switch``; None: it always
+    runs) and its compiled twins."""
+
+    name: str
+    origin: str
+    switch: Optional[str] = None
+    twins: tuple = ()
+
+    def on(self, params) -> bool:
+        """Whether ``params`` run this stage."""
+        return self.switch is None or bool(getattr(params, self.switch))
 
 
 def kernel(function, **options):
@@ -75,6 +137,9 @@ def run(use_compiled: bool, compiled_kernel, reference, *args):
     return reference(*args)
 
 
+_run = run  # what Twin.run calls (its own name is taken there)
+
+
 def compile_later(compiled_kernel, *args) -> None:
     """Queue the compilation of ``compiled_kernel`` for these arguments' types on the background
     thread, without running anything (for a kernel that is compiled before use, whose numpy twin
@@ -84,6 +149,18 @@ def compile_later(compiled_kernel, *args) -> None:
     signature = tuple(compiled_kernel.typeof_pyval(a) for a in args)
     if signature not in compiled_kernel.overloads:
         _queue(compiled_kernel, signature)
+
+
+def call_later(function, *args) -> None:
+    """Have the background thread call ``function(*args)`` once (a Python function that
+    compiles a round-off kernel on its first call, see :class:`Twin`); its failure marks
+    ``function`` failed."""
+    with _lock:
+        if (function, 'call') in _queued:
+            return
+        _queued.add((function, 'call'))
+    _jobs.put(('call', function, args))
+    _start_compiler()
 
 
 def failed(compiled_kernel) -> bool:
@@ -141,7 +218,7 @@ def _queue(compiled_kernel, signature) -> None:
         if (compiled_kernel, signature) in _queued:
             return
         _queued.add((compiled_kernel, signature))
-    _jobs.put((compiled_kernel, signature))
+    _jobs.put(('compile', compiled_kernel, signature))
     _start_compiler()
 
 
@@ -160,9 +237,12 @@ def _compile_forever() -> None:
         if isinstance(job, threading.Event):
             job.set()
             continue
-        compiled_kernel, signature = job
+        what, compiled_kernel, arguments = job
         try:
-            compiled_kernel.compile(signature)  # compiles, or loads numba's on-disk cache
+            if what == 'compile':
+                compiled_kernel.compile(arguments)  # compiles, or loads numba's disk cache
+            else:
+                compiled_kernel(*arguments)  # call_later: it compiles what it calls
         except Exception:  # noqa: BLE001 - the reference stays in use for this kernel
             _failed.add(compiled_kernel)
 

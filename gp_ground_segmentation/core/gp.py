@@ -1,46 +1,29 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Whole-frame Gaussian process over the ground candidates of all segments (paper sections III-IV).
+"""Stage ``gp fit`` [paper, sections III-IV]: the whole-frame GP over the ground candidates.
 
-Paper: kernel (eq. 7, Paciorek & Schervish non-stationary squared exponential in 1-D):
-
-    k(r_i, r_j) = sigma_f^2 (L_i^2)^(1/4) (L_j^2)^(1/4) ((L_i^2 + L_j^2) / 2)^(-1/2)
-                  * exp(-(r_i - r_j)^2 / (L_i^2 + L_j^2)),        L_i = a d_i
-
-length-scale factor (eqs. 8 and 12): d_i = log(1/g_i) / rho_i, with g the slope of the
-candidate's line-segment and rho the density-like value, and d_i = log(1/g_d) below the slope
-floor g_d; prediction (eqs. 5 and 13); hyperparameters theta = (sigma_f, a, sigma_n) shared by
-all segments and learned by maximising the whole-frame objective
+Paper: every segment's training candidates (r_i, z_i) with length scales L_i = a d_i (eq. 12,
+``length_factors``) form one GP with the kernel of eq. 7 (``paciorek``); theta = (sigma_f, a,
+sigma_n) is shared by all segments and learned by maximising the whole-frame objective
 J(theta) = sum_m log p(z_m | r_m, theta) (eq. 14).
 
 Ours, where the paper is silent:
 
-* g is clipped to [g_d, g_max] with g_max < 1: g >= 1 (steeper than 45 deg) would give
-  log(1/g) <= 0, a non-positive length scale; one-point lines (no slope) count as flat (g_d).
-* rho is the bin's rho~ relative to the typical rho~ at the same range
-  (``grid.relative_density``), so that ``a`` means the same near and far and for a 16-beam and a
-  128-beam sensor; rho~ > 0 for every bin that holds a candidate, so d is finite.
-* ``density_in_flat_branch=True`` also divides the flat branch by rho (continuous in g at g_d);
-  the default (False) is the paper's eq. 12.
-* d is clipped to [d_min, d_max] so that no candidate gets a vanishing or unbounded length scale;
-  with d fixed per frame, L = a d exactly and the prefactor of k is independent of ``a``.
-* The prior mean is a constant m0 (the paper's eq. 6 uses a zero mean), so sigma_f describes
-  deviations of the ground from a level plane at m0: the segmenter passes the anchor height
-  (``prior_mean_at_anchor``, default), clipped to the candidates' range; without one,
-  FrameGP takes the median height of the training points.
-* Each training point may carry its own extra noise variance on top of sigma_n^2 (the anchor
-  at r = 0, rejected outliers: see ``additions``).
-* theta is learned with L-BFGS-B on log theta within bounds, using the analytic gradient
+* the prior mean is a constant m0 (the paper's eq. 6 uses zero), so sigma_f describes the
+  ground's deviations from a level plane at m0: the anchor height (``prior_mean_at_anchor``)
+  or the median height of the training points;
+* each training point may carry extra noise variance on top of sigma_n^2 (the anchor, rejected
+  outliers: :meth:`FrameGP.with_noise`);
+* theta is learned with scipy's L-BFGS-B on log theta within bounds, under a cap on objective
+  evaluations (each one factorisation of the frame), with the analytic gradient
+  dJ/dlog theta = 1/2 sum_m tr((alpha alpha^T - A_m^-1) dA_m/dlog theta).
 
-      dJ/dtheta = 1/2 sum_m tr((alpha alpha^T - A_m^-1) dA_m/dtheta),   A_m = K_m + diag(noise),
-
-  under a cap on objective evaluations.
-
-All segments are solved together as one padded (S, n, n) batch. Backend 'numba' runs the whole
-step compiled, each segment at its own size (gp_compiled.py: kernel, Cholesky, inverse, J, its
-gradient, prediction); backend 'numpy' is the reference: numpy's stacked Cholesky and inverse
-over the padded batch, where padded rows are identity rows with z = 0, which add nothing to J
-or its gradient. numpy is also the fallback (non-PD matrices: jittered retries; a numba
-failure: numpy for the rest of that object's life).
+All segments are solved as one padded (S, n) batch. The numpy reference factorises it with
+stacked LAPACK calls, padded slots being identity rows with z = 0 that add nothing to J or its
+gradient; it is also the fallback (non-PD matrices: jittered retries; a numba failure: numpy
+for the rest of that object's life). The compiled solve (:data:`SOLVE`) processes each segment
+at its own size n_s in one pass (kernel, Cholesky, inverse, log|A|, alpha, gradient terms)
+without a Python-level temporary, and releases the GIL. The two agree to round-off (LAPACK
+against loops), so the compiled one is compiled before use, never swapped in mid-stream.
 """
 
 from __future__ import annotations
@@ -51,9 +34,12 @@ from typing import Optional
 
 import numpy as np
 from scipy.optimize import minimize
+from threadpoolctl import ThreadpoolController
 
-from . import gp_compiled
-from .compiled import kernel, run
+from . import predict
+from .anchor import GroundAnchor
+from .compiled import AVAILABLE, Stage, Twin, kernel
+from .paciorek import paciorek_compiled
 
 LOG_2PI = float(np.log(2.0 * np.pi))
 
@@ -71,10 +57,23 @@ def resolve_backend(backend: str) -> str:
     if backend not in BACKENDS:
         raise ValueError(f"backend: expected one of {', '.join(BACKENDS)}, got {backend!r}")
     if backend == 'auto':
-        return 'numba' if gp_compiled.AVAILABLE else 'numpy'
-    if backend == 'numba' and not gp_compiled.AVAILABLE:
+        return 'numba' if AVAILABLE else 'numpy'
+    if backend == 'numba' and not AVAILABLE:
         raise ValueError("backend 'numba' requested but numba is not installed")
     return backend
+
+
+_blas = None  # threadpoolctl controller, made on first use (after scipy has loaded its BLAS)
+
+
+def numpy_blas_limit():
+    """One BLAS thread while the numpy GP runs (a context manager). It factorises many tiny
+    (n <= N + 1) matrices, on which OpenBLAS threads only spin: the same wall time, half the
+    CPU time, which leaves the other core to the ROS executor. The compiled GP calls no BLAS."""
+    global _blas
+    if _blas is None:
+        _blas = ThreadpoolController()
+    return _blas.limit(limits=1, user_api='blas')
 
 
 # solutions each FrameGP keeps (the start and the last point of a theta search: whichever
@@ -84,69 +83,6 @@ _CACHED_SOLUTIONS = 2
 
 class _BudgetExhausted(Exception):
     """Raised inside the objective to stop L-BFGS-B exactly at the evaluation cap."""
-
-
-def length_scale_factors(slope, density_rel, *, slope_floor, slope_ceiling,
-                         density_in_flat_branch=True, d_min=0.05, d_max=50.0):
-    """d_i = log(1/g_i) / rho_i with the guards listed in the module docstring."""
-    inverse_slope, flat = slope_terms(slope, slope_floor, slope_ceiling)
-    return factors_from_logs(np.log(inverse_slope), density_rel, flat,
-                             flat_value=float(np.log(1.0 / slope_floor)),
-                             density_in_flat_branch=density_in_flat_branch, d_min=d_min,
-                             d_max=d_max)
-
-
-def slope_terms(slope, slope_floor, slope_ceiling):
-    """(1 / g, flat) of :func:`length_scale_factors`: g = |slope| clipped to [slope_floor,
-    slope_ceiling] (a NaN slope is flat, +inf steep); flat where |slope| < slope_floor."""
-    slope = np.asarray(slope, dtype=np.float64)
-    raw = np.where(np.isnan(slope), 0.0, np.abs(slope))  # no slope = flat; +inf = steep
-    # np.minimum(np.maximum()) is np.clip without its Python-level overhead (same values)
-    return 1.0 / np.minimum(np.maximum(raw, slope_floor), slope_ceiling), raw < slope_floor
-
-
-def factors_from_logs(log_inverse_slope, density_rel, flat, *, flat_value,
-                      density_in_flat_branch, d_min, d_max):
-    """The rest of :func:`length_scale_factors` from log(1 / g): divided by rho~ (1 where it
-    is not positive), ``flat_value`` = log(1 / slope_floor) on flat bins unless
-    ``density_in_flat_branch``, clipped to [d_min, d_max] (NaN stays NaN)."""
-    d = log_inverse_slope / np.where(density_rel > 0, density_rel, 1.0)
-    if not density_in_flat_branch:
-        d = np.where(flat, flat_value, d)
-    return np.minimum(np.maximum(d, d_min), d_max)
-
-
-def paciorek_kernel(r1, l1, r2, l2, sigma_f):
-    """k(r1_i, r2_j) for broadcastable arrays: r1, l1 (..., n, 1) against r2, l2 (..., 1, m)."""
-    s = l1 * l1 + l2 * l2
-    prefactor = np.sqrt(2.0 * l1 * l2 / s)
-    diff = r1 - r2
-    return sigma_f * sigma_f * prefactor * np.exp(-diff * diff / s)
-
-
-def _posterior_std(k_star, a_inv, sigma_f) -> np.ndarray:
-    """numpy's posterior std sqrt(sigma_f^2 - k*^T A^-1 k*) (S, k) from k* (S, k, n)
-    [segment, prediction point, training point] and A^-1 (S, n, n)."""
-    reduce = np.einsum('skn,snm,skm->sk', k_star, a_inv, k_star, optimize=True)
-    return np.sqrt(np.maximum(sigma_f * sigma_f - reduce, 0.0))  # clamp round-off
-
-
-def _is_plain_float64(a) -> bool:
-    """A C-contiguous, writable, aligned float64 ndarray (what the compiled prediction is
-    compiled for), as numpy flags say it."""
-    return (type(a) is np.ndarray and a.dtype == np.float64
-            and a.flags.num & 0x0501 == 0x0501)  # C-contiguous, aligned, writeable
-
-
-def _prediction_points(r_star, d_star, s_count: int):
-    """(r*, d*) as (S, k) float64 arrays for the compiled prediction: as given when both are
-    that already (the segmenter's), else broadcast copies (a read-only array or another layout
-    is another numba signature to load). The kernel only reads them."""
-    if (_is_plain_float64(r_star) and _is_plain_float64(d_star) and r_star.ndim == 2
-            and r_star.shape == d_star.shape and r_star.shape[0] == s_count):
-        return r_star, d_star
-    shape = np.broadcast_shapes(np.shape(r_star), np.shape(d_star), (s_count, 1))
-    return tuple(np.broadcast_to(a, shape).astype(np.float64) for a in (r_star, d_star))
 
 
 @dataclass
@@ -162,16 +98,6 @@ class GPSolution:
     gradient: Optional[np.ndarray] = None  # (3,) dJ/dlog(theta) when the solver gave it
     logdets: Optional[np.ndarray] = None  # (S,) log|A| of each segment when compiled
     pair_terms: tuple = ()  # compiled: (K, q) (S, n, n), see gp_compiled.solve_batched
-
-
-@dataclass(frozen=True)
-class GroundAnchor:
-    """One extra training point at r = 0 in chosen segments: the ground under the vehicle."""
-
-    height_m: float  # z of the point (m)
-    noise_var: float  # its noise variance on top of sigma_n^2 (m^2)
-    segments: np.ndarray  # (M,) bool: segments that get it
-    length_factor: np.ndarray  # (M,) d of the point in each segment
 
 
 def _pad_numpy(r, z, d, mask, noise_var, has_anchor, anchor_segments, anchor_d,
@@ -269,7 +195,13 @@ def _pad_loop(r, z, d, mask, noise_var, has_anchor, anchor_segments, anchor_d, a
     return segments, valid, bins, r_out, z_out, d_out, noise_out, counts
 
 
-_pad_compiled = kernel(_pad_loop)
+def _pad_examples(_dtype):
+    grid, row = np.ones((2, 2)), np.ones(2)
+    return [(grid, grid, grid, np.ones((2, 2), bool), grid, True, np.ones(2, bool), row, 0.0,
+             0.1, 0.0)]
+
+
+PAD = Twin('GP batch padding', _pad_numpy, kernel(_pad_loop), _pad_examples)
 
 
 def _slot_noise_loop(noise_var, old_noise_var, valid, is_anchor, segments, bins, anchor_var):
@@ -295,7 +227,267 @@ def _slot_noise_loop(noise_var, old_noise_var, valid, is_anchor, segments, bins,
     return slot_noise, changed
 
 
-_slot_noise_compiled = kernel(_slot_noise_loop)
+def _slot_noise_numpy(noise_var, old_noise_var, valid, is_anchor, segments, bins, anchor_var):
+    """The numpy reference of :func:`_slot_noise_loop`."""
+    keep = valid & ~is_anchor
+    grid_index = (segments[:, None] * noise_var.shape[1] + bins)[keep]
+    slot_noise = np.where(is_anchor, anchor_var, 0.0)
+    slot_noise[keep] = noise_var.reshape(-1)[grid_index]
+    return slot_noise, np.any(slot_noise != old_noise_var, axis=1)
+
+
+def _slot_examples(_dtype):
+    slots, flags = np.ones((2, 2)), np.ones((2, 2), bool)
+    return [(slots, slots, flags, flags, np.zeros(2, np.intp), np.zeros((2, 2), np.intp), 0.1)]
+
+
+SLOT_NOISE = Twin('GP slot noise', _slot_noise_numpy, kernel(_slot_noise_loop), _slot_examples)
+
+
+# --- the solve: compiled, and its numpy reference ---------------------------------------------
+
+def solve_batched(r, d, z, noise_var, counts, sigma_f, gain, sigma_n):
+    """Factorise A_s = K_s + diag(sigma_n^2 + noise_var) of every segment s at theta (compiled).
+
+    r, d, z, noise_var: (S, n) padded training data, the first ``counts[s]`` slots of row s
+    valid. Returns (ok (S,), logdet (S,), alpha (S, n), a_inv (S, n, n), gradient (3,),
+    kernel (S, n, n), q (S, n, n)): ``gradient`` is dJ/dlog(sigma_f, a, sigma_n) summed over
+    the segments; ``kernel`` and ``q`` hold K and (r_i - r_j)^2 / (d_i^2 + d_j^2) in each
+    segment's first counts[s] rows and columns (the rest is not written) for
+    :func:`resolve_batched`. ``ok[s]`` is False when Cholesky meets a non-positive pivot (that
+    segment's outputs are then meaningless; the caller falls back to jittered numpy).
+    """
+    nothing = np.zeros((0, 0, 0))
+    return resolve_batched(r, d, z, noise_var, counts, sigma_f, gain, sigma_n,
+                           np.ones(r.shape[0], dtype=np.bool_), np.zeros(0), np.zeros((0, 0)),
+                           nothing, nothing, nothing)  # every segment changed: nothing known
+
+
+def resolve_batched(r, d, z, noise_var, counts, sigma_f, gain, sigma_n, changed,
+                    known_logdet, known_alpha, known_a_inv, known_kernel, known_q):
+    """:func:`solve_batched` when a solution at this theta of the same data with another
+    noise in the ``changed`` (S,) segments is known: its K and q are reused and returned, the
+    unchanged segments' log|A|, alpha and A^-1 copied; the gradient is still summed over every
+    segment in order, so the outputs are :func:`solve_batched`'s bit for bit. Empty
+    ``known_kernel`` and ``known_q`` (0, 0, 0): K and q are computed."""
+    s_count, n = r.shape
+    kernel_known = known_kernel.shape[0] > 0
+    outputs = (np.empty(s_count, dtype=np.bool_), np.empty(s_count), np.empty((s_count, n)),
+               np.empty((s_count, n, n)), np.empty(3),
+               known_kernel if kernel_known else np.empty((s_count, n, n)),
+               known_q if kernel_known else np.empty((s_count, n, n)))
+    _resolve_into(r, d, z, noise_var, counts, sigma_f, gain, sigma_n, changed, known_logdet,
+                  known_alpha, known_a_inv, kernel_known, np.empty((2, n, n)), *outputs)
+    return outputs
+
+
+def _resolve_into(r, d, z, noise_var, counts, sigma_f, gain, sigma_n, changed, known_logdet,
+                  known_alpha, known_a_inv, kernel_known, work, ok, logdet, alpha, a_inv,
+                  gradient, k_all, q_all):
+    """The loops of :func:`resolve_batched` (compiled), into its outputs (allocated, not
+    initialised) with ``work`` (2, n, n). No array is allocated here: numba compiles
+    np.zeros / np.empty for every number of dimensions on first use in a process (~0.9 s of a
+    new install's first frame); outputs are zeroed with element loops instead of np.zeros,
+    whose fresh pages would fault on first write."""
+    s_count, n = r.shape
+    _zero_solution(work, ok, logdet, alpha, a_inv)
+    sf2 = sigma_f * sigma_f
+    inv_gain2 = 1.0 / (gain * gain)
+    sn2 = sigma_n * sigma_n
+    g_sf = 0.0
+    g_gain = 0.0
+    g_sn = 0.0
+    for s in range(s_count):
+        m = counts[s]
+        for i in range(m, n):
+            a_inv[s, i, i] = 1.0  # padded slots: identity rows, as in the numpy reference
+        if not kernel_known:
+            _pair_terms(r[s], d[s], m, sf2, inv_gain2, k_all[s], q_all[s])
+        if changed[s]:
+            ok[s], logdet[s] = _factorise(k_all[s], noise_var[s], z[s], m, sn2, work[0],
+                                          work[1], a_inv[s], alpha[s])
+        else:  # known: A^-1, alpha and log|A| of this segment at this theta
+            for i in range(n):  # element loops: slice copies cost numba seconds to compile
+                alpha[s, i] = known_alpha[s, i]
+                for j in range(n):
+                    a_inv[s, i, j] = known_a_inv[s, i, j]
+            logdet[s] = known_logdet[s]
+        if ok[s]:
+            g_sf, g_gain, g_sn = _add_gradient(alpha[s], a_inv[s], k_all[s], q_all[s], m,
+                                               g_sf, g_gain, g_sn)
+    gradient[0] = g_sf
+    gradient[1] = g_gain * inv_gain2
+    gradient[2] = g_sn * sn2
+
+
+def _zero_solution(work, ok, logdet, alpha, a_inv):
+    """ok True, the rest 0 (element loops: see :func:`_resolve_into`)."""
+    s_count, n = alpha.shape
+    for i in range(n):
+        for j in range(n):
+            work[0, i, j] = 0.0
+            work[1, i, j] = 0.0
+    for s in range(s_count):
+        ok[s] = True
+        logdet[s] = 0.0
+        for i in range(n):
+            alpha[s, i] = 0.0
+            for j in range(n):
+                a_inv[s, i, j] = 0.0
+
+
+def _pair_terms(r, d, m, sf2, inv_gain2, k, q):
+    """K and q of one segment's first ``m`` points (symmetric), with the kernel of eq. 7."""
+    for i in range(m):
+        for j in range(i + 1):
+            kij, qij = paciorek_compiled(r[i] - r[j], d[i], d[j], sf2, inv_gain2)
+            q[i, j] = qij
+            q[j, i] = qij
+            k[i, j] = kij
+            k[j, i] = kij
+
+
+def _factorise(k, noise_var, z, m, sn2, lower, inv_lower, a_inv, alpha):
+    """Cholesky of one segment's A = K + diag(sn2 + noise_var) (first ``m`` slots), L^-1,
+    A^-1 = L^-T L^-1 and alpha = A^-1 z into ``a_inv`` and ``alpha``: (ok, log|A|); ok False
+    at a non-positive pivot (nothing after it is written)."""
+    logdet = 0.0
+    for j in range(m):  # Cholesky, lower
+        v = k[j, j] + sn2 + noise_var[j]
+        for t in range(j):
+            v -= lower[j, t] * lower[j, t]
+        if not v > 0.0:
+            return False, logdet
+        ljj = np.sqrt(v)
+        lower[j, j] = ljj
+        logdet += 2.0 * np.log(ljj)
+        for i in range(j + 1, m):
+            v = k[i, j]
+            for t in range(j):
+                v -= lower[i, t] * lower[j, t]
+            lower[i, j] = v / ljj
+    for i in range(m):  # L^-1, lower
+        inv_lower[i, i] = 1.0 / lower[i, i]
+        for j in range(i):
+            v = 0.0
+            for t in range(j, i):
+                v -= lower[i, t] * inv_lower[t, j]
+            inv_lower[i, j] = v / lower[i, i]
+    for i in range(m):  # A^-1 = L^-T L^-1
+        for j in range(i + 1):
+            v = 0.0
+            for t in range(i, m):
+                v += inv_lower[t, i] * inv_lower[t, j]
+            a_inv[i, j] = v
+            a_inv[j, i] = v
+    for i in range(m):
+        v = 0.0
+        for j in range(m):
+            v += a_inv[i, j] * z[j]
+        alpha[i] = v
+    return True, logdet
+
+
+def _add_gradient(alpha, a_inv, k, q, m, g_sf, g_gain, g_sn):
+    """The running sums of 1/2 tr(W dA/dlog theta), W = alpha alpha^T - A^-1, with one
+    segment's terms added (dK/dlog sigma_f = 2K, dK/dlog a = 2 K q / a^2: ``paciorek``)."""
+    for i in range(m):
+        ai = alpha[i]
+        for j in range(m):
+            wk = (ai * alpha[j] - a_inv[i, j]) * k[i, j]
+            g_sf += wk
+            g_gain += wk * q[i, j]
+        g_sn += ai * ai - a_inv[i, i]
+    return g_sf, g_gain, g_sn
+
+
+if AVAILABLE:  # the callees before their callers
+    _zero_solution = kernel(_zero_solution)
+    _pair_terms = kernel(_pair_terms)
+    _factorise = kernel(_factorise)
+    _add_gradient = kernel(_add_gradient)
+    _resolve_into = kernel(_resolve_into)
+
+
+def _pair_geometry(r, d, valid):
+    """(q, prefactor) (S, n, n) of a padded batch, 0 on padded pairs (``paciorek``'s terms
+    that do not depend on theta): q = (r_i - r_j)^2 / (d_i^2 + d_j^2), prefactor =
+    sqrt(2 d_i d_j / (d_i^2 + d_j^2))."""
+    pair = valid[:, :, None] & valid[:, None, :]
+    di, dj = d[:, :, None], d[:, None, :]
+    sd = di * di + dj * dj
+    diff = r[:, :, None] - r[:, None, :]
+    return (np.where(pair, diff * diff / sd, 0.0),
+            np.where(pair, np.sqrt(2.0 * di * dj / sd), 0.0))
+
+
+def _kernel_from_geometry(q, prefactor, sigma_f, gain):
+    """K (S, n, n) at (sigma_f, gain) from the batch's :func:`_pair_geometry` (numpy)."""
+    k = np.multiply(q, -1.0 / (gain * gain))  # in place from here: one temporary
+    np.exp(k, out=k)
+    k *= prefactor
+    k *= sigma_f * sigma_f
+    return k
+
+
+def _with_noise_diagonal(k, valid, noise_var, sigma_n):
+    """(A = K + diag(sigma_n^2 + noise_var), a writable view of A's diagonals); padded slots
+    get 1 there (identity rows: K is 0 there)."""
+    a = k.copy()
+    a_diag = a.reshape(a.shape[0], -1)[:, ::a.shape[-1] + 1]  # a view of every diagonal
+    a_diag += np.where(valid, sigma_n ** 2 + noise_var, 1.0)
+    return a, a_diag
+
+
+def _numpy_gradient(alpha, a_inv, k, q, valid, theta):
+    """dJ/dlog theta (3,) of a numpy solution: 1/2 tr(W dA/dlog theta), W = alpha alpha^T -
+    A^-1. K (and so W K) is 0 on padded slots and the noise term takes the valid diagonal."""
+    wk = (alpha[:, :, None] * alpha[:, None, :] - a_inv) * k
+    grad_sigma_f = float(wk.sum())  # 1/2 tr(W * 2K)
+    grad_gain = float(np.vdot(wk, q)) / theta[1] ** 2  # 1/2 tr(W * K * 2q/a^2)
+    w_diag = alpha * alpha - np.diagonal(a_inv, axis1=1, axis2=2)
+    grad_sigma_n = float(w_diag[valid].sum()) * theta[2] ** 2  # 1/2 tr(W * 2 sn^2 I)
+    return np.array([grad_sigma_f, grad_gain, grad_sigma_n])
+
+
+def _resolve_numpy(r, d, z, noise_var, counts, sigma_f, gain, sigma_n, changed, known_logdet,
+                   known_alpha, known_a_inv, known_kernel, known_q):
+    """The numpy reference of :func:`resolve_batched` (FrameGP's numpy arithmetic, without its
+    jittered retries): the full solve (what is known changes no number, to round-off); ok all
+    False when a matrix is not PD."""
+    valid = np.arange(r.shape[1])[None, :] < counts[:, None]
+    q, prefactor = _pair_geometry(r, d, valid)
+    k = _kernel_from_geometry(q, prefactor, sigma_f, gain)
+    a, _ = _with_noise_diagonal(k, valid, noise_var, sigma_n)
+    try:
+        chol = np.linalg.cholesky(a)
+    except np.linalg.LinAlgError:
+        return (np.zeros(r.shape[0], dtype=bool),) + (None,) * 6
+    a_inv = np.linalg.inv(a)
+    alpha = np.einsum('sij,sj->si', a_inv, z)
+    logdets = 2.0 * np.log(np.diagonal(chol, axis1=1, axis2=2)).sum(axis=1)
+    gradient = _numpy_gradient(alpha, a_inv, k, q, valid, (sigma_f, gain, sigma_n))
+    return np.ones(r.shape[0], dtype=bool), logdets, alpha, a_inv, gradient, k, q
+
+
+def _solve_examples(_dtype):
+    r, counts = np.array([[0.0, 1.0]]), np.array([2], dtype=np.intp)
+    one, nothing = np.ones((1, 2)), np.zeros((0, 0, 0))
+    return [(r, one, one, one * 0.0, counts, 1.0, 1.0, 0.1, np.ones(1, dtype=np.bool_),
+             np.zeros(0), np.zeros((0, 0)), nothing, nothing, nothing)]
+
+
+def _solve_outputs(args, outputs):
+    """What of a solve the twin tests compare: K and q only in each segment's first counts
+    rows and columns (the kernel leaves the rest unwritten)."""
+    counts = args[4]
+    ok, logdets, alpha, a_inv, gradient, k, q = outputs
+    return (ok, logdets, alpha, a_inv, gradient) + tuple(
+        [a[s, :c, :c] for s, c in enumerate(counts)] for a in (k, q))
+
+
+SOLVE = Twin('GP solve', _resolve_numpy, resolve_batched if AVAILABLE else None,
+             _solve_examples, exact=False, outputs=_solve_outputs)
 
 
 class FrameGP:
@@ -341,7 +533,7 @@ class FrameGP:
         # segments: rows of (M, N) that enter the batch; per (S, n) slot: valid, grid bin (-1
         # for the anchor), r, z - mean, d, noise_var; counts: training points of each row
         (self.segments, self.valid, self.bins, self.r, self.z, self.d, self.noise_var,
-         self.counts) = run(self.backend == 'numba', _pad_compiled, _pad_numpy, *args)
+         self.counts) = PAD.run(self.backend == 'numba', *args)
         self.n_max = self.valid.shape[1]
         self.is_anchor = self.valid & (self.bins < 0)
         self.num_points = int(self.counts.sum())
@@ -354,17 +546,9 @@ class FrameGP:
         self._known = None  # ([(theta bytes, compiled solution)], changed (S,)): with_noise
 
     def _pair_geometry(self):
-        """(q, prefactor) (S, n, n) of the numpy path, 0 on padded pairs; computed once.
-
-        q = (r_i - r_j)^2 / (d_i^2 + d_j^2), prefactor = sqrt(2 d_i d_j / (d_i^2 + d_j^2)).
-        """
+        """(q, prefactor) (S, n, n) of the numpy path (:func:`_pair_geometry`), made once."""
         if self._geometry is None:
-            pair = self.valid[:, :, None] & self.valid[:, None, :]
-            di, dj = self.d[:, :, None], self.d[:, None, :]
-            sd = di * di + dj * dj
-            diff = self.r[:, :, None] - self.r[:, None, :]
-            self._geometry = (np.where(pair, diff * diff / sd, 0.0),
-                              np.where(pair, np.sqrt(2.0 * di * dj / sd), 0.0))
+            self._geometry = _pair_geometry(self.r, self.d, self.valid)
         return self._geometry
 
     def with_noise(self, noise_var) -> 'FrameGP':
@@ -379,8 +563,8 @@ class FrameGP:
         anchor_var = float(self.anchor.noise_var) if self.anchor is not None else 0.0
         # the grid candidates' slots get ``noise_var``, the anchor's its own, padding 0; and
         # the segments whose noise changed
-        other.noise_var, changed = run(
-            self.backend == 'numba', _slot_noise_compiled, self._slot_noise,
+        other.noise_var, changed = SLOT_NOISE.run(
+            self.backend == 'numba',
             np.ascontiguousarray(noise_var, dtype=np.float64).reshape(self.shape),
             self.noise_var, self.valid, self.is_anchor, self.segments, self.bins, anchor_var)
         other._cache = []  # cholesky_fallbacks carries on: it counts the whole chain
@@ -390,14 +574,6 @@ class FrameGP:
         compiled_solutions = [(key, sol) for key, sol in self._cache if sol.logdets is not None]
         other._known = (compiled_solutions, changed) if compiled_solutions else None
         return other
-
-    def _slot_noise(self, noise_var, old_noise_var, valid, is_anchor, segments, bins,
-                    anchor_var):
-        """The numpy reference of :func:`_slot_noise_loop` (``with_noise``'s slots)."""
-        keep, grid_index = self._grid_slots()
-        slot_noise = np.where(is_anchor, anchor_var, 0.0)
-        slot_noise[keep] = noise_var.reshape(-1)[grid_index]
-        return slot_noise, np.any(slot_noise != old_noise_var, axis=1)
 
     def to_grid(self, slot_values, fill) -> np.ndarray:
         """(S, n) values of the training slots -> (M, N) over the grid's bins (anchor dropped)."""
@@ -419,12 +595,7 @@ class FrameGP:
     def kernel(self, theta):
         """K (S, n, n) at theta, zero on padded slots (numpy reference)."""
         sigma_f, gain, _ = theta
-        q, prefactor = self._pair_geometry()
-        k = np.multiply(q, -1.0 / (gain * gain))  # in place from here: one temporary
-        np.exp(k, out=k)
-        k *= prefactor
-        k *= sigma_f * sigma_f
-        return k
+        return _kernel_from_geometry(*self._pair_geometry(), sigma_f, gain)
 
     def solve(self, theta) -> GPSolution:
         """Factorise A at theta, adding growing diagonal jitter if Cholesky fails.
@@ -451,17 +622,18 @@ class FrameGP:
     def _solve_compiled(self, theta, key: bytes) -> Optional[GPSolution]:
         """The whole step in numba (``key``: theta's bytes, as :meth:`solve` caches it); None
         when a matrix is not PD or numba fails (then numpy)."""
-        args = (self.r, self.d, self.z, self.noise_var, self.counts,
-                *(float(t) for t in theta))
         known_solutions, changed = self._known if self._known is not None else ([], None)
         known = next((sol for known_key, sol in known_solutions if known_key == key), None)
+        if known is None:  # every segment changed: nothing known
+            empty = np.zeros((0, 0, 0))
+            changed = np.ones(self.segments.size, dtype=np.bool_)
+            known_parts = (np.zeros(0), np.zeros((0, 0)), empty, empty, empty)
+        else:
+            known_parts = (known.logdets, known.alpha, known.a_inv, *known.pair_terms)
         try:
-            if known is not None:
-                ok, logdets, alpha, a_inv, gradient, *pair_terms = gp_compiled.resolve_batched(
-                    *args, changed, known.logdets, known.alpha, known.a_inv, *known.pair_terms)
-            else:
-                ok, logdets, alpha, a_inv, gradient, *pair_terms = gp_compiled.solve_batched(
-                    *args)
+            ok, logdets, alpha, a_inv, gradient, *pair_terms = SOLVE.run(
+                True, self.r, self.d, self.z, self.noise_var, self.counts,
+                *(float(t) for t in theta), changed, *known_parts)
         except Exception as exc:  # noqa: BLE001 - numba compile/runtime failure
             self.backend, self.compiled_error = 'numpy', str(exc)  # numpy from now on
             return None
@@ -474,11 +646,7 @@ class FrameGP:
     def _solve_numpy(self, theta) -> GPSolution:
         """The numpy reference (and fallback): stacked factorisation of the padded batch."""
         k = self.kernel(theta)
-        # A = K + noise on the diagonal; padded slots get 1 there (identity rows, K is 0 there)
-        diagonal = np.where(self.valid, theta[2] ** 2 + self.noise_var, 1.0)
-        a = k.copy()
-        a_diag = a.reshape(a.shape[0], -1)[:, ::a.shape[-1] + 1]  # a view of every diagonal
-        a_diag += diagonal
+        a, a_diag = _with_noise_diagonal(k, self.valid, self.noise_var, theta[2])
         a_inv, logdet, alpha, jitter = self._numpy_factorise(a, a_diag, theta)
         return GPSolution(theta, alpha, a_inv, self._lml(logdet, alpha), jitter, k)
 
@@ -511,16 +679,8 @@ class FrameGP:
         sol = self.solve(theta)
         if sol.gradient is not None:
             return sol.lml, sol.gradient.copy()
-        k = sol.kernel
         q, _ = self._pair_geometry()
-        # W = alpha alpha^T - A^-1; K (and so W*K) is zero on padded slots, and the noise
-        # derivative only involves the valid diagonal, so no full-size mask is needed.
-        wk = (sol.alpha[:, :, None] * sol.alpha[:, None, :] - sol.a_inv) * k
-        grad_sigma_f = float(wk.sum())  # 1/2 tr(W * 2K)
-        grad_gain = float(np.vdot(wk, q)) / theta[1] ** 2  # 1/2 tr(W * K * 2q/a^2)
-        w_diag = sol.alpha * sol.alpha - np.diagonal(sol.a_inv, axis1=1, axis2=2)
-        grad_sigma_n = float(w_diag[self.valid].sum()) * theta[2] ** 2  # 1/2 tr(W * 2 sn^2 I)
-        return sol.lml, np.array([grad_sigma_f, grad_gain, grad_sigma_n])
+        return sol.lml, _numpy_gradient(sol.alpha, sol.a_inv, sol.kernel, q, self.valid, theta)
 
     # -- learning ------------------------------------------------------------------------
     def fit(self, theta0, bounds, max_evaluations):
@@ -574,7 +734,7 @@ class FrameGP:
         best = int(np.argmin(values))  # values[0] is theta0: the result is never worse
         return np.exp(points[best]), info
 
-    # -- prediction ----------------------------------------------------------------------
+    # -- the leave-one-out view and the prediction ------------------------------------------
     def loo_residuals(self, sol: GPSolution) -> np.ndarray:
         """(S, n) z_i - mean_{-i}: leave-one-out residual alpha_i / [A^-1]_ii (R&W eq. 5.12)."""
         diag = np.diagonal(sol.a_inv, axis1=1, axis2=2)
@@ -587,45 +747,19 @@ class FrameGP:
         return np.where(self.valid, np.sqrt(1.0 / diag), 0.0)
 
     def predict(self, sol: GPSolution, r_star, d_star, with_std=True, return_kernel=False):
-        """Posterior mean (absolute z) and std at r_star, d_star (S, k) of the batch segments.
-
-        ``with_std=False`` skips the variance (the costlier half) and returns std = None.
-        ``return_kernel``: also return k* (S, n, k) for a later :meth:`std_from_kernel` (the
-        std without recomputing k*), or None when the compiled backend did not run.
-        """
-        sigma_f, gain, _ = sol.theta
-        if self.backend == 'numba' and sol.gradient is not None:  # a compiled solution
-            r_star, d_star = _prediction_points(r_star, d_star, self.segments.size)
-            try:
-                mean, std, k_star = gp_compiled.predict_batched(
-                    self.r, self.d, self.counts, sol.alpha, sol.a_inv, r_star, d_star,
-                    float(sigma_f), float(gain), bool(with_std))
-            except Exception as exc:  # noqa: BLE001 - numba compile/runtime failure
-                self.backend, self.compiled_error = 'numpy', str(exc)
-            else:
-                out = (mean + self.mean, (std if with_std else None))
-                return out + (k_star,) if return_kernel else out
-        l_star = gain * np.asarray(d_star, dtype=np.float64)[:, :, None]
-        l_train = gain * self.d[:, None, :]
-        k_star = paciorek_kernel(np.asarray(r_star, dtype=np.float64)[:, :, None], l_star,
-                                 self.r[:, None, :], l_train, sigma_f)
-        k_star = np.where(self.valid[:, None, :], k_star, 0.0)
-        mean = np.einsum('skn,sn->sk', k_star, sol.alpha) + self.mean
-        std = _posterior_std(k_star, sol.a_inv, sigma_f) if with_std else None
-        return (mean, std, None) if return_kernel else (mean, std)
+        """Posterior mean (absolute z) and std at r_star, d_star (S, k) of the batch segments
+        (``predict`` stage). ``with_std=False`` skips the variance (the costlier half) and
+        returns std = None; ``return_kernel`` also returns k* (S, n, k) for a later
+        :meth:`std_from_kernel` (the std without recomputing k*)."""
+        return predict.posterior(self, sol, r_star, d_star, with_std, return_kernel)
 
     def std_from_kernel(self, sol: GPSolution, k_star) -> np.ndarray:
         """Posterior std (S, k) from the k* that ``predict(..., return_kernel=True)`` returned
-        for ``sol``: the same numbers as ``predict(..., with_std=True)`` gives.
+        for ``sol``: the numbers ``predict(..., with_std=True)`` gives. The compiled std may be
+        compiled only now (warm_up leaves it to the background when the labels do not use it);
+        should that fail, numpy computes it (equal to round-off), the error in
+        ``compiled_error``."""
+        return predict.std_from_kernel(self, sol, k_star)
 
-        The std's kernel may be compiled only now (the segmenter's warm_up leaves it to the
-        background when the labels do not use it); should that fail, numpy computes it (equal
-        to round-off) and the error is kept in ``compiled_error``.
-        """
-        sigma_f = float(sol.theta[0])
-        try:
-            return gp_compiled.std_batched(self.counts, sol.a_inv, k_star, sigma_f)
-        except Exception as exc:  # noqa: BLE001 - numba compile/runtime failure
-            self.compiled_error = str(exc)
-        # the compiled prediction's k* is (S, n, k): [segment, training point, prediction point]
-        return _posterior_std(k_star.transpose(0, 2, 1), sol.a_inv, sigma_f)
+
+STAGES = (Stage('gp fit', 'paper', None, (PAD, SLOT_NOISE, SOLVE)),)

@@ -1,35 +1,26 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Radial grid: M angular segments x N radial bins, ground candidates and the density-like rho~.
+"""Stage ``grid`` [paper, section II]: valid points, the radial grid, ground candidates, rho~.
 
-Paper section II. Every segment m is cut into N bins spread evenly between *that segment's own*
-minimum and maximum radial range ("divided unevenly" across segments: a segment facing a wall
-at 6 m gets fine bins, one facing an open road gets coarse ones). The ground candidate of a bin
-is its lowest point, kept as (r, z); among points of equal z the first in input order.
+Valid points are finite and not exactly (0, 0, 0), the no-return value of organised drivers.
+Every segment m of the M angular segments is cut into N bins spread evenly between *that
+segment's own* minimum and maximum range (the paper's "divided unevenly" across segments). The
+ground candidate of a bin is its lowest point (r, z); among equal z the first in input order.
+Binning (segment, bin, lowest point) is decided in float64 whatever the input precision, so a
+float32 cloud and its float64 copy give the same grid (points within round-off of a segment
+border would otherwise change segment, and with it that segment's bins); per-point outputs
+stay in the input's precision.
 
-Binning decisions (segment, bin, lowest point) are made in float64 whatever the input precision,
-so a float32 cloud and the same values as float64 give the same grid, candidates and GP: with
-float32 arithmetic, points within round-off of a segment's border change segment, which moves
-that segment's r_min and every bin edge of it, and the cold-start theta follows (measured on
-the VLP-16 scan: 19 points, 14 candidates). Per-point outputs (r, position in the bin) are kept
-in the input's precision. Two implementations give the same grid: a compiled (numba) pass over
-the points, and the numpy reference (``np.minimum.at`` / ``np.bincount`` over integer bin
-keys), used without numba.
+rho~ as computed is a 2-D point density: the bin's point count over its horizontal sector area
+A (points per m^2 of ground). The paper (eqs. 3-4) cuts each bin into j vertical slices from
+its z_min to z_max and averages rho_i = (points in slice i) / (slice area); with the bin's
+sector as every slice's area that mean is n / (j A), i.e. ours up to the constant 1/j, which
+changes no result (rho~ is used only through ratios: Algorithm 1's density jump and eq. 12 after
+the ring normalisation of ``length_factors``), so there is no j parameter. If the paper's slice
+area is the slice's vertical cross-section instead, its rho~ would differ from ours by the
+bin's height spread: that reading is not implemented.
 
-Density-like value rho~ (paper eq. 3): each bin is cut into j vertical slices from its z_min to
-its z_max, rho_i = (points in slice i) / (slice area) and rho~ = mean_i rho_i. All slices of a
-bin share the bin's horizontal (sector) area A, so the mean has the closed form
-rho~ = n_bin / (j * A): a bin with many points stacked above its lowest point (an obstacle on
-or beside the ground) gets a high rho~, which is what the paper asks of it ("a higher
-density-like value to the points ... with an obstacle in their proximity"). We compute
-rho~ = n_bin / A [points per m^2]: the constant 1/j changes no result -- the segmenter uses
-rho~ only through ratios (the density-jump test of Algorithm 1, ``relative_density``) -- so
-there is no j parameter.
-
-Below-ground reflection noise (the shared SemanticKITTI frame has points down to z = -27 m)
-would make such a point the "lowest point" of its bin. The grid keeps the plain lowest point, as
-in the paper; the segmenter rejects these candidates afterwards with the GP's leave-one-out
-residual (a candidate far *below* the ground predicted from its neighbours is noise), see
-``gp.loo_residuals`` and ``SegmenterParams.noise_spike_m``.
+Below-ground reflection noise (points metres under the road) becomes the lowest point of its
+bin here, as in the paper; the ``outliers`` stage rejects those candidates afterwards.
 """
 
 from __future__ import annotations
@@ -38,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .compiled import AVAILABLE, kernel, run
+from .compiled import AVAILABLE, Stage, Twin, kernel
 
 
 @dataclass
@@ -72,6 +63,62 @@ class RadialGrid:
     def bin_edges(self) -> np.ndarray:
         """(M, N + 1) radial position of each bin's edges (m), from r_min to r_max."""
         return bin_edges(self.segment_r_min, self.bin_width, self.num_bins)
+
+
+def valid_points_mask(xyz: np.ndarray) -> np.ndarray:
+    """Finite and not exactly (0, 0, 0), the no-return value of organized drivers (Ouster)."""
+    x, y, z = xyz[:, 0], xyz[:, 1], xyz[:, 2]  # per column: reductions over axis 1 are slow
+    finite = np.isfinite(x) & np.isfinite(y) & np.isfinite(z)
+    return finite & ~((x == 0) & (y == 0) & (z == 0))
+
+
+def _valid_columns(xyz: np.ndarray):
+    """(valid mask (N,), x, y, z of the valid points as contiguous arrays) of (N, 3) ``xyz``:
+    the numpy reference of :func:`_valid_columns_loop`."""
+    valid = valid_points_mask(xyz)
+    valid_xyz = xyz if valid.all() else xyz[valid]
+    return (valid,) + tuple(np.ascontiguousarray(valid_xyz[:, i]) for i in range(3))
+
+
+def _valid_columns_loop(xyz):
+    """:func:`_valid_columns` in one pass over the points (compiled with numba): the same
+    tests and values. Every point is copied to the next free slot, which advances only past a
+    valid one (no branch: ~25 % less time than a counting and a copying pass)."""
+    n_points = xyz.shape[0]
+    valid = np.empty(n_points, dtype=np.bool_)
+    x = np.empty(n_points, dtype=xyz.dtype)
+    y = np.empty(n_points, dtype=xyz.dtype)
+    z = np.empty(n_points, dtype=xyz.dtype)
+    k = 0
+    for i in range(n_points):
+        px, py, pz = xyz[i, 0], xyz[i, 1], xyz[i, 2]
+        ok = (np.isfinite(px) and np.isfinite(py) and np.isfinite(pz)
+              and not (px == 0 and py == 0 and pz == 0))
+        valid[i] = ok
+        x[k], y[k], z[k] = px, py, pz
+        k += ok
+    return valid, x[:k], y[:k], z[:k]
+
+
+def _cloud_layouts(dtype):
+    """The (N, 3) layouts of a frame's points: C and F order (the node's copy when x, y, z are
+    not side by side), the x, y, z columns of (N, 4) rows, read-only (the node's decode: views
+    on msg.data) with and without intensity."""
+    rows, xyz_rows = np.ones((2, 4), dtype), np.ones((2, 3), dtype)
+    for view in (rows, xyz_rows):
+        view.flags.writeable = False
+    xyz = np.ones((3, 2), dtype)
+    return [(cloud,) for cloud in (xyz.T.copy(), xyz.T, np.ones((2, 4), dtype)[:, :3],
+                                   rows[:, :3], xyz_rows)]
+
+
+VALID_COLUMNS = Twin('valid points', _valid_columns, kernel(_valid_columns_loop),
+                     _cloud_layouts)
+
+
+def valid_columns(xyz: np.ndarray, compiled: bool = True):
+    """(valid mask (N,), x, y, z (P,) of the valid points, contiguous, in ``xyz``'s dtype)."""
+    return VALID_COLUMNS.run(compiled, xyz)
 
 
 def bin_edges(segment_r_min: np.ndarray, bin_width: np.ndarray, num_bins: int) -> np.ndarray:
@@ -243,6 +290,9 @@ _grid_compiled = None
 if AVAILABLE:  # the pass calls the compiled _segment_widths
     _segment_widths_compiled = kernel(_segment_widths)
     _grid_compiled = kernel(_grid_pass, error_model='numpy')
+GRID_PASS = Twin('grid pass', _grid_numpy, _grid_compiled,
+                 lambda dtype: [(*np.ones((3, 2), dtype), np.ones(2), 2, 2)])
+STAGES = (Stage('grid', 'paper', None, (VALID_COLUMNS, GRID_PASS)),)
 
 
 def build_grid(x: np.ndarray, y: np.ndarray, z: np.ndarray, num_segments: int,
@@ -257,7 +307,7 @@ def build_grid(x: np.ndarray, y: np.ndarray, z: np.ndarray, num_segments: int,
     m_count, n_count = int(num_segments), int(num_bins)
     angle = _angle(x, y)
     args = (x, y, z, angle, m_count, n_count)
-    out = run(compiled, _grid_compiled, _grid_numpy, *args)
+    out = GRID_PASS.run(compiled, *args)
     if not out[0]:  # r overflowed in the compiled pass
         out = _grid_numpy(*args)
     (_, r, seg, bins, fraction, r_min, width, count, candidate_index, cand_r, cand_z,
@@ -266,46 +316,3 @@ def build_grid(x: np.ndarray, y: np.ndarray, z: np.ndarray, num_segments: int,
     return RadialGrid(m_count, n_count, r, angle, seg, bins, fraction, r_min, width,
                       count.reshape(shape), candidate_index.reshape(shape),
                       cand_r.reshape(shape), cand_z.reshape(shape), density.reshape(shape))
-
-
-RING_RATIO = 1.15  # relative_density's range rings: r within this factor
-
-
-def relative_density(density: np.ndarray, candidate_r: np.ndarray, mask: np.ndarray,
-                     ring_ratio: float = RING_RATIO) -> np.ndarray:
-    """rho~ divided by its typical value at the same range; 1 = an ordinary bin at that range.
-
-    A spinning LiDAR's point density falls roughly as 1/r^2 to 1/r^3, so raw rho~ mostly encodes
-    range: used as is in L = a log(1/g) / rho~, it would give 0.3 m length scales next to the
-    sensor and 100 m ones far away. Dividing by the geometric mean of rho~ over the candidates
-    (``mask``) in the same logarithmic range ring (r within a factor ``ring_ratio``) keeps what
-    the paper wants from rho~ -- bins with points stacked above the candidate (obstacles) stand
-    out with rho~ > 1 -- and makes it independent of range and of the sensor's beam count.
-    Entries outside ``mask`` or in a ring with no masked candidate get 1.
-    """
-    out = np.ones_like(density, dtype=np.float64)
-    usable = usable_bins(density, candidate_r, mask)
-    if not usable.any():
-        return out
-    out[usable] = np.exp(ring_log_deviation(np.log(candidate_r[usable]),
-                                            np.log(density[usable]), np.log(ring_ratio)))
-    return out
-
-
-def usable_bins(density, candidate_r, mask) -> np.ndarray:
-    """The bins :func:`relative_density` compares: in ``mask``, with rho~ > 0 and a finite
-    range > 0."""
-    return mask & (density > 0) & np.isfinite(candidate_r) & (candidate_r > 0)
-
-
-def ring_log_deviation(log_r: np.ndarray, log_rho: np.ndarray, log_ratio: float) -> np.ndarray:
-    """log rho~ minus its mean over the log-range ring of width ``log_ratio`` it falls in
-    (:func:`relative_density`'s arithmetic on its usable bins; the segmenter's compiled
-    length-factor pass uses it as its numpy twin)."""
-    if log_r.size == 0:
-        return np.empty(0)
-    ring = np.floor(log_r / log_ratio).astype(np.intp)
-    ring -= ring.min()
-    sums = np.bincount(ring, weights=log_rho)
-    counts = np.bincount(ring)
-    return log_rho - sums[ring] / counts[ring]

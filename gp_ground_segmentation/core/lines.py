@@ -1,19 +1,21 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Line extraction over the ground candidates of every segment: the paper's Algorithm 1, only.
+"""Stage ``lines``: the paper's Algorithm 1 over each segment's candidates, the steep-line
+filter, and our chord slopes of one-point lines.
 
-Fit: errors-in-variables (Deming) maximum-likelihood line with variance ratio
+Fit [paper]: an errors-in-variables (Deming) maximum-likelihood line with variance ratio
 lambda = var(z error) / var(r error), closed form from the second moments:
 
     beta = (s_zz - lambda s_rr + sqrt((s_zz - lambda s_rr)^2 + 4 lambda s_rz^2)) / (2 s_rz)
     alpha = mean_z - beta * mean_r
 
-(lambda = 1 is orthogonal regression; lambda -> infinity tends to OLS of z on r.) Unlike OLS it
-is not biased flat by noise in r (test_lines.py shows this on synthetic lines); on the shared
-frames and scenes no benchmark shows a measurable effect of Deming over OLS on the labels.
+lambda -> infinity tends to OLS of z on r. lambda = 1, the default, is orthogonal regression:
+exactly the method the paper rejects ("the method assumes that both parameters have the same
+error while this assumption is not valid"), which asks for unequal errors without giving a
+ratio. The default stays 1 until a measured choice replaces it.
 
-Growing (how Algorithm 1 is read here): candidates are visited in order of r. The current
-line of a segment accumulates its candidates' moments; the next candidate is a *critical point*
--- it ends the current line and starts a new one -- when any of these holds:
+Growing (how Algorithm 1 is read here): candidates are visited in order of r. The current line
+of a segment accumulates its candidates' moments; the next candidate is a *critical point* -- it
+ends the current line and starts a new one -- when any of these holds:
 
 * radial gap to the previous candidate > zeta_m (``max_gap_m``): a break in the data;
 * rho~ changes by more than a factor ``max_density_jump`` (the paper's "smoothness of rho~");
@@ -21,25 +23,30 @@ line of a segment accumulates its candidates' moments; the next candidate is a *
 * the line with it added would be steeper than zeta_b (``max_slope``); for a one-point line
   this is the slope of the two-point chord.
 
-All segments advance in lock-step, bin index by bin index. Two implementations give the same
-lines, bit for bit: a compiled (numba, ``nogil``) loop over bins and segments, and the numpy
-reference (one vectorised step over the M segments per bin index: N small vector operations,
-about 2.5 ms of Python overhead per frame), used without numba. Both evaluate the same scalar
-formulas in the same order and number the lines in the same (bin-major, then segment) order.
+All segments advance in lock-step, bin index by bin index, in both implementations (the numba
+loop and the numpy reference, one vectorised step over the M segments per bin index); they
+evaluate the same scalar formulas in the same order and number the lines alike.
 
-Output per candidate: its line id (unique in the frame), whether it starts a line after a
-critical point, the slope g = |beta| of its final line, and the signed slope of its line just
-before it joined (what ``additions.elevated_plateaus`` extrapolates). One-point lines have no
-slope: they get NaN, which the GP treats as flat (g_d).
+Output per candidate: its line id, whether it starts a line after a critical point, the slope
+g = |beta| of its final line (NaN for one-point lines), and the signed slope of its line just
+before it joined (what the ``plateau`` stage extrapolates).
+
+Steep lines [paper]: candidates on a line steeper than zeta_b do not train the GP ("large sloped
+line-segments relate to non-ground structures"). Chord slopes [ours,
+``use_chord_slope_for_single_points``]: Algorithm 1 ends a line *before* it gets steeper than
+zeta_b, so a wall is a string of one-point lines whose NaN slope would read as flat ground; each
+gets the slope of the chord from the previous candidate of its segment (the chord to the *next*
+candidate would mark the last ground candidate before a crest as steep).
 """
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 
 import numpy as np
 
-from .compiled import AVAILABLE, kernel, run
+from .compiled import AVAILABLE, Stage, Twin, kernel
 
 
 @dataclass
@@ -105,7 +112,7 @@ def extract_lines(cand_r: np.ndarray, cand_z: np.ndarray, density: np.ndarray, *
     args = (cand_r, cand_z, np.asarray(density, dtype=np.float64), float(variance_ratio),
             float(max_slope), float(max_distance_m), float(max_gap_m), 1.0 / max_density_jump,
             float(max_density_jump))
-    return LineSegments(*run(compiled, _lines_compiled, _lines_numpy, *args))
+    return LineSegments(*LINES.run(compiled, *args))
 
 
 def _lines_numpy(cand_r, cand_z, density, variance_ratio, max_slope, max_distance_m,
@@ -363,3 +370,113 @@ if AVAILABLE:  # the loops call the compiled scalar fit and growing loop
     _deming_scalar = kernel(_deming_scalar, error_model='numpy')
     _grow_lines_compiled = kernel(_grow_lines_loop, error_model='numpy')
     _lines_compiled = kernel(_lines_loop, error_model='numpy')
+
+
+def _lines_examples(_dtype):
+    grid = np.ones((2, 2))
+    return [(grid, grid, grid, 1.0, 1.0, 1.0, 1.0, 0.5, 2.0)]
+
+
+LINES = Twin('line growing', _lines_numpy, _lines_compiled, _lines_examples)
+
+
+def with_slope(lines: LineSegments, slope: np.ndarray) -> LineSegments:
+    """``dataclasses.replace(lines, slope=slope)`` (a new object sharing the other fields)
+    without its field-by-field ``__init__`` (~4 us)."""
+    out = copy.copy(lines)
+    out.slope = slope
+    return out
+
+
+# --- the steep-line filter [paper] ------------------------------------------------------------
+
+def training_candidates(candidate_index: np.ndarray, slope: np.ndarray, max_slope: float,
+                        compiled: bool = True):
+    """(candidates not on a line steeper than ``max_slope`` (M, N) bool, the number of
+    candidates, the number on steep lines); a NaN slope is not steep."""
+    return NOT_STEEP.run(compiled, candidate_index, slope, float(max_slope))
+
+
+def _not_steep_numpy(candidate_index, slope, max_slope):
+    """The numpy reference of :func:`_not_steep_loop`."""
+    has = candidate_index >= 0
+    with np.errstate(invalid='ignore'):
+        steep = slope > max_slope
+    steep &= has
+    # count_nonzero: a fifth of bool.sum()'s cost at this size
+    return has & ~steep, np.count_nonzero(has), np.count_nonzero(steep)
+
+
+def _not_steep_loop(candidate_index, slope, max_slope):
+    """:func:`_not_steep_numpy` in one pass (compiled with numba): the same comparisons."""
+    m_count, n_count = slope.shape
+    training = np.empty((m_count, n_count), dtype=np.bool_)
+    candidates = 0
+    steep_count = 0
+    for m in range(m_count):
+        for k in range(n_count):
+            has = candidate_index[m, k] >= 0
+            steep = has and slope[m, k] > max_slope
+            training[m, k] = has and not steep
+            candidates += has
+            steep_count += steep
+    return training, candidates, steep_count
+
+
+NOT_STEEP = Twin('steep-line filter', _not_steep_numpy, kernel(_not_steep_loop),
+                 lambda _dtype: [(np.ones((2, 2), dtype=np.intp), np.ones((2, 2)), 1.0)])
+
+
+# --- chord slopes of one-point lines [ours] ---------------------------------------------------
+
+def one_point_line_slopes(slope: np.ndarray, cand_r: np.ndarray, cand_z: np.ndarray,
+                          compiled: bool = True) -> np.ndarray:
+    """``slope`` (M, N) with every one-point line (NaN slope) given |dz/dr| of the chord from
+    the previous candidate of its segment (module docstring); a segment's first candidate
+    keeps NaN."""
+    return CHORDS.run(compiled, np.asarray(slope, dtype=np.float64), cand_r, cand_z)
+
+
+def _chord_slopes_numpy(slope, cand_r, cand_z):
+    """The numpy reference of :func:`one_point_line_slopes`."""
+    present = np.isfinite(cand_r) & np.isfinite(cand_z)
+    col = np.where(present, np.arange(cand_r.shape[1]), -1)
+    prev = np.maximum.accumulate(col, axis=1)  # last candidate at or before each bin
+    prev = np.concatenate([np.full((prev.shape[0], 1), -1), prev[:, :-1]], axis=1)
+    safe = np.maximum(prev, 0)
+    with np.errstate(divide='ignore', invalid='ignore'):
+        chord = np.abs((cand_z - np.take_along_axis(cand_z, safe, axis=1))
+                       / (cand_r - np.take_along_axis(cand_r, safe, axis=1)))
+    chord = np.where((prev >= 0) & present & np.isfinite(chord), chord, np.nan)
+    return np.where(np.isnan(slope), chord, slope)
+
+
+def _chord_slopes_loop(slope, cand_r, cand_z):
+    """:func:`_chord_slopes_numpy` one segment at a time (compiled with numba): the same chord
+    of the same values."""
+    m_count, n_count = slope.shape
+    out = np.empty((m_count, n_count))
+    for m in range(m_count):
+        prev = -1
+        for k in range(n_count):
+            present = np.isfinite(cand_r[m, k]) and np.isfinite(cand_z[m, k])
+            value = slope[m, k]
+            if np.isnan(value):
+                value = np.nan
+                if present and prev >= 0:
+                    chord = np.abs((cand_z[m, k] - cand_z[m, prev])
+                                   / (cand_r[m, k] - cand_r[m, prev]))
+                    if np.isfinite(chord):
+                        value = chord
+            out[m, k] = value
+            if present:
+                prev = k
+    return out
+
+
+CHORDS = Twin('chord slopes', _chord_slopes_numpy, kernel(_chord_slopes_loop, error_model='numpy'),
+              lambda _dtype: [(np.ones((2, 2)),) * 3])
+
+CHORD_SLOPES = Stage('chord slopes', 'ours', 'use_chord_slope_for_single_points', (CHORDS,))
+STAGES = (Stage('lines', 'paper', None, (LINES,)), CHORD_SLOPES,
+          Stage('steep lines', 'paper', None, (NOT_STEEP,)))

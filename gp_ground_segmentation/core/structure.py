@@ -1,42 +1,31 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Feet of vertical structures: ground-height points with a column of returns right above them.
+"""Stage ``structure`` [ours, ``use_vertical_structure_test``]: ground-height points with a
+column of returns right above them are the feet of walls, fences, cars, trunks and bushes.
 
-Stage ``structure`` of the segmenter (after ``label``). The height test z - z_hat <= threshold
-cannot tell the lowest returns of a wall, fence, car side, trunk or bush from the road in front
-of it: they lie a few cm above the predicted ground (median 0.07 m on the shared SemanticKITTI
-scans), well inside the threshold. What gives them away is what stands *above* them: a spinning
-LiDAR puts the next beams' returns on a vertical surface at nearly the same xy (a few cm apart),
-while on open ground the next beam lands metres further out. So a point called ground is the
-foot of a structure when some other point within a few cm horizontally stands more than
-``rise_m`` above the predicted ground and more than ``step_m`` above the point itself (the
-second condition keeps a ramp's ground where the predicted ground is a little off: neighbours a
-few cm apart on the slope differ by far less than that).
+The label rule cannot tell the lowest returns of a vertical surface from the road in front of it:
+they lie a few cm above the predicted ground, inside the threshold. What gives them away is what
+stands *above* them: a spinning LiDAR puts the next beams' returns on a vertical surface at
+nearly the same xy, while on open ground the next beam lands metres further out. So a point
+called ground is a foot when another point within a few cm horizontally stands more than
+``rise_m`` above the predicted ground and more than ``step_m`` above the point itself (which
+keeps a ramp's ground: neighbours a few cm apart on a slope differ by far less). Only points up
+to ``max_height_m`` above the ground count (tree crowns, car roofs and signs overhanging visible
+ground must not erase it). Curbs stay ground with ``rise_m`` above curb height.
 
-"Within a few cm" is a fine polar grid, like the sensor's own geometry: azimuth cells of
-``cell_deg`` and radial cells of ``cell_m`` out to the range where the azimuth cell is ``cell_m``
-wide, growing in proportion to the range beyond (so the table stays small however far the
-points reach, and a far wall, whose beams are farther apart, gets a wider window). A point's
-neighbourhood is its cell and the 8 around it. Only points up to ``max_height_m`` above the
-predicted ground count as the column: tree crowns, car roofs and signs overhanging visible
-ground are higher than the structures whose feet are the problem, and must not erase the
-ground under them.
-
-Two compiled passes: the selection of the column points and the candidates with their polar
-cells (from the grid's float64 azimuths, computed once per frame; only the far rings' log is
-numpy's, whose last bit numba's does not match), then the table of the highest column point
-per cell (azimuth x radial, only the rings each azimuth row uses) and the nine look-ups per
-candidate. Their numpy twins (masks and gathers; a dense table, ``np.maximum.at`` and nine
-gathers) give the same points and mask, and run without numba or while a pass compiles.
-About 2 ms on a 124k-point KITTI scan.
-Curbs (0.1-0.2 m faces) stay ground when ``rise_m`` is above curb height; ramps and hills rise
-less than ``rise_m`` over a few cm; sparse far ground has no point above it.
+"Within a few cm" is a fine polar grid: azimuth cells of ``cell_deg`` and radial cells of
+``cell_m`` out to the range where an azimuth cell is ``cell_m`` wide, growing in proportion to
+the range beyond (a far wall's beams are farther apart); a point's neighbourhood is its cell and
+the 8 around it. Two compiled passes (the selection of column points and candidates with their
+cells; the table of the highest column point per cell and the nine look-ups) have numpy twins
+(masks and gathers; a dense table, ``np.maximum.at`` and nine gathers); only the far rings' log
+is numpy's on both paths (numba's differs in the last bit).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from .compiled import kernel, run
+from .compiled import Stage, Twin, kernel
 from .grid import _angle, _segment_of_angle
 
 __all__ = ['vertical_structure_mask', 'structure_feet']
@@ -55,7 +44,8 @@ def _within(index, r, limit):
     return index[near], r[near]
 
 
-def structure_feet(params, x, y, z, ground_z, candidate, *, r=None, angle=None):
+def structure_feet(params, x, y, z, ground_z, candidate, *, r=None, angle=None,
+                   compiled: bool = True):
     """:func:`vertical_structure_mask` with the sizes of ``params`` (SegmenterParams:
     structure_cell_m, structure_cell_deg, structure_rise_m, structure_max_height_m,
     structure_step_m): the stage ``structure`` of the segmenter, also for tools that apply it
@@ -64,7 +54,7 @@ def structure_feet(params, x, y, z, ground_z, candidate, *, r=None, angle=None):
         x, y, z, ground_z, candidate, cell_m=params.structure_cell_m,
         cell_deg=params.structure_cell_deg, rise_m=params.structure_rise_m,
         max_height_m=params.structure_max_height_m, step_m=params.structure_step_m, r=r,
-        angle=angle)
+        angle=angle, compiled=compiled)
 
 
 def vertical_structure_mask(x: np.ndarray, y: np.ndarray, z: np.ndarray,
@@ -117,10 +107,10 @@ def _mask_in_cells(select, cell_m: float, cell_rad: float, step, compiled: bool)
     # the constants as _segment_of_angle computes them
     cells = (n_az, n_az / (2.0 * np.pi), 1.0 / cell_m, r_square, 1.0 / r_square)
     (az_col, ring_col, z_col, cand, az_cand, ring_cand, z_cand, far_index, n_far_col,
-     far_ratio) = run(compiled, _select_cells_compiled, _select_cells_numpy, *select, *cells)
-    return run(compiled, _cells_hits_compiled, _cells_hits_numpy, select[1].size, az_col,
-               ring_col, z_col, cand, az_cand, ring_cand, z_cand, far_index, n_far_col,
-               np.log(far_ratio), r_square / cell_m, 1.0 / cell_rad, n_az, step)
+     far_ratio) = SELECT_CELLS.run(compiled, *select, *cells)
+    return CELLS_HITS.run(compiled, select[1].size, az_col, ring_col, z_col, cand, az_cand,
+                          ring_cand, z_cand, far_index, n_far_col, np.log(far_ratio),
+                          r_square / cell_m, 1.0 / cell_rad, n_az, step)
 
 
 def _cells_numpy(angle, r, n_az, inv_cell_m, r_square):
@@ -360,3 +350,27 @@ _select_cells_compiled = _cells_hits_compiled = None
 if _structure_hits_compiled is not None:  # these passes call the compiled ones above
     _select_cells_compiled = kernel(_select_cells_loop)
     _cells_hits_compiled = kernel(_cells_hits_loop)
+
+
+def _select_examples(dtype):
+    """A ground point with a column point right above it (reaches every compiled part), with
+    the cells' constants as :func:`_mask_in_cells` makes them."""
+    z = np.array([0.0, 0.5], dtype)
+    scalar = np.dtype(dtype).type
+    return [(np.zeros(2), z, np.zeros(2, dtype), np.array([True, False]), np.ones(2, dtype),
+             scalar(0.2), scalar(0.7), scalar(100.0), 4, 0.5, 10.0, 1.0, 1.0)]
+
+
+def _hits_examples(dtype):
+    select = _select_examples(dtype)[0]
+    cells = _select_cells_numpy(*select)
+    return [(2, *cells[:-1], np.log(np.ones(cells[-1].size)), 1.0, 1.0, 4,
+             np.dtype(dtype).type(0.05))]
+
+
+SELECT_CELLS = Twin('structure selection and cells', _select_cells_numpy,
+                    _select_cells_compiled, _select_examples)
+CELLS_HITS = Twin('structure look-ups', _cells_hits_numpy, _cells_hits_compiled,
+                  _hits_examples)
+STAGE = Stage('structure', 'ours', 'use_vertical_structure_test', (SELECT_CELLS, CELLS_HITS))
+STAGES = (STAGE,)

@@ -48,14 +48,16 @@ ground offset.
 
 from __future__ import annotations
 
+import contextlib
 from functools import cached_property, lru_cache
 from typing import Callable, Optional
 
 import numpy as np
 
-from .compiled import kernel, run, sort_in_place
-from .additions import _rise_compiled, cross_segment_rise
+from .compiled import Stage, Twin, kernel, sort_in_place
+from .gp import numpy_blas_limit
 from .grid import bin_edges, segment_of
+from .labels import _rise_compiled, cross_segment_rise
 from .sensor_frame import SensorPose
 
 # Tolerance (in bins) of height_at's range test: round-off between the grid's r and the one
@@ -65,7 +67,7 @@ _RANGE_TOLERANCE_BINS = 1e-4
 # vertical through (x, y) meets the ground; each step shrinks the error by about
 # tan(tilt) * ground slope (< 0.05 for 10 degrees on a 15 % slope)
 _TILT_ITERATIONS = 6
-# across_segment_std: additions.cross_segment_rise caps the step at this slope times the
+# across_segment_std: labels.cross_segment_rise caps the step at this slope times the
 # segment's width; the spread of the ground is not capped
 _UNCAPPED_SLOPE = 1e6
 
@@ -166,9 +168,8 @@ class GroundSurface:
     @cached_property
     def _tilted_xyz(self):
         """x, y, z of the prediction points in a tilted input frame: p_C = R^T p_L + t."""
-        p_l = (self._level_x, self._level_y, self._level_z)
-        rot, t = self._pose.rotation(), (self._pose.x, self._pose.y, self._pose.z)
-        return tuple(sum(rot[j, i] * p_l[j] for j in range(3)) + t[i] for i in range(3))
+        return _tilted(self._level_x, self._level_y, self._level_z, self._pose.rotation(),
+                       (self._pose.x, self._pose.y, self._pose.z))
 
     @cached_property
     def ground_offset(self) -> np.ndarray:
@@ -217,7 +218,7 @@ class GroundSurface:
         The surface is one z(r) per segment: a point off the segment's centre line lies on
         ground that differs by the slope across the segment times its offset. That slope is
         read from the neighbouring segments' surface at the same r, as the cross-slope
-        threshold reads it (additions.cross_segment_rise): only where the ground rises on one
+        threshold reads it (labels.cross_segment_rise): only where the ground rises on one
         side of the segment and falls on the other, by the smaller of the two steps s; the
         ground then spans about s across the segment's width, and a point anywhere across it
         (uniformly) is off the centre by a std of s / (2 sqrt 3). A single raised or lowered
@@ -225,12 +226,7 @@ class GroundSurface:
         a missing neighbour and a segment without support (at the prior, whose std sigma_f
         says it) add nothing.
         """
-        level = np.where(self._segment_supported[:, None], self._level_z, np.nan)
-        # the threshold's rule, uncapped (a slope cap of 1e6: finite, so r = 0 stays 0)
-        step = cross_segment_rise(self.r, level, _UNCAPPED_SLOPE)
-        # a segment without support sits at the prior, whose std (sigma_f) already says it
-        step = np.where(self._segment_supported[:, None], step, 0.0)
-        return step / (2.0 * np.sqrt(3.0))
+        return _across_segment_std(self.r, self._level_z, self._segment_supported)
 
     @cached_property
     def supported(self) -> np.ndarray:
@@ -249,27 +245,15 @@ class GroundSurface:
         operations in the same order as the numpy reference, so the same values, bit for
         bit."""
         use_compiled = self._compiled if compiled is None else bool(compiled)
-        if not use_compiled or _points_compiled is None:
-            return self._points_numpy(supported_only)
         pose = self._pose
         rotated = bool(pose.has_rotation)
         cos_c, sin_c = self._centre_cos_sin
-        args = (self._r_min, self._width, self._mean, self.ground_offset, self.gp_std,
-                self._segment_supported, cos_c.reshape(-1), sin_c.reshape(-1),
-                pose.rotation() if rotated else np.eye(3),
-                np.array([pose.x, pose.y, pose.z], dtype=np.float64), rotated,
-                bool(supported_only))
-        return run(True, _points_compiled, lambda *_: self._points_numpy(supported_only), *args)
-
-    def _points_numpy(self, supported_only: bool) -> np.ndarray:
-        """The numpy reference of :meth:`points`."""
-        rows = np.flatnonzero(self._segment_supported) if supported_only else slice(None)
-        out = np.empty(self._mean[rows].shape + (4,), dtype=np.float32)
-        with np.errstate(over='ignore', invalid='ignore'):
-            for i, column in enumerate((self.x, self.y, self.z, self.z_std)):
-                out[..., i] = column[rows]
-        out = out.reshape(-1, 4)
-        return out[np.isfinite(out).all(axis=1)]
+        return POINTS.run(use_compiled, self._r_min, self._width, self._mean,
+                          self.ground_offset, self.gp_std, self._segment_supported,
+                          cos_c.reshape(-1), sin_c.reshape(-1),
+                          pose.rotation() if rotated else np.eye(3),
+                          np.array([pose.x, pose.y, pose.z], dtype=np.float64), rotated,
+                          bool(supported_only))
 
     # --- anywhere ----------------------------------------------------------------------------
     def height_at(self, x, y) -> tuple[np.ndarray, np.ndarray]:
@@ -329,6 +313,36 @@ class GroundSurface:
         return z_out.reshape(shape), std_out.reshape(shape)
 
 
+def frame_surface(model, grid, edges, mean, std, z, ground, z_hat, k_star, pose,
+                  compiled: bool = True) -> GroundSurface:
+    """The GroundSurface of one frame from its ``predict.GroundModel``, RadialGrid ``grid``,
+    the (M, N + 1) bin ``edges`` and the posterior ``mean`` and ``std`` there (None: computed
+    from the prediction's ``k_star`` when first read), and the valid points' heights ``z``,
+    labels ``ground`` and ground heights ``z_hat`` (for the offset, when first read). The
+    deferred computations keep these alive, not the rest of the per-point grid."""
+    point_segment, point_bin = grid.point_segment, grid.point_bin
+    m_count, n_bins = grid.num_segments, grid.num_bins
+
+    def compute_std():
+        std = np.full(edges.shape, model.theta[0])  # the prior std where no GP segment is
+        if model.solution is None:
+            return std
+        numpy_solution = model.gp.backend != 'numba' or model.solution.gradient is None
+        limit = numpy_blas_limit() if numpy_solution else contextlib.nullcontext()
+        with limit, np.errstate(over='ignore'):
+            std[model.gp.segments] = model.gp.std_from_kernel(model.solution, k_star)
+        return std
+
+    def compute_offset():
+        return ground_offsets(z, z_hat, ground, point_segment, point_bin, m_count, n_bins,
+                              model.theta[2], compiled=compiled)
+
+    return GroundSurface(grid.segment_r_min, grid.bin_width, grid.count.sum(axis=1) > 0, mean,
+                         model.training.any(axis=1), std,
+                         compute_std if std is None else None, compute_offset, pose,
+                         compiled=compiled)
+
+
 @lru_cache(maxsize=8)
 def _segment_centres(num_segments: int):
     """(M, 1) azimuth of the segment centres, their cosine and sine: read-only, made once per
@@ -339,6 +353,45 @@ def _segment_centres(num_segments: int):
     for values in out:
         values.flags.writeable = False
     return out
+
+
+def _tilted(level_x, level_y, level_z, rotation, translation):
+    """x, y, z in a tilted input frame of points (x, y, z) of the levelled sensor frame:
+    p_C = R^T p_L + t."""
+    p_l = (level_x, level_y, level_z)
+    return tuple(sum(rotation[j, i] * p_l[j] for j in range(3)) + translation[i]
+                 for i in range(3))
+
+
+def _across_segment_std(r, level_z, supported, compiled: bool = True):
+    """:attr:`GroundSurface.across_segment_std` of the surface ``level_z`` at ranges ``r``
+    ((M, N + 1), levelled frame) with the (M,) ``supported`` segments."""
+    level = np.where(supported[:, None], level_z, np.nan)
+    # the threshold's rule, uncapped (a slope cap of 1e6: finite, so r = 0 stays 0)
+    step = cross_segment_rise(r, level, _UNCAPPED_SLOPE, compiled=compiled)
+    # a segment without support sits at the prior, whose std (sigma_f) already says it
+    step = np.where(supported[:, None], step, 0.0)
+    return step / (2.0 * np.sqrt(3.0))
+
+
+def _points_numpy(r_min, width, mean, offset, gp_std, supported, cos_c, sin_c, rotation,
+                  translation, rotated, supported_only):
+    """The numpy reference of :func:`_points_loop`: the properties' x, y, z, z_std as float32
+    rows of the (supported) segments, the rows that are not finite left out."""
+    r = bin_edges(r_min, width, mean.shape[1] - 1)
+    level = (r * cos_c[:, None], r * sin_c[:, None], mean + offset)
+    if rotated:
+        xyz = _tilted(*level, rotation, translation)
+    else:
+        xyz = tuple(level[i] + translation[i] for i in range(3))
+    z_std = np.hypot(gp_std, _across_segment_std(r, level[2], supported))
+    rows = np.flatnonzero(supported) if supported_only else slice(None)
+    out = np.empty(mean[rows].shape + (4,), dtype=np.float32)
+    with np.errstate(over='ignore', invalid='ignore'):
+        for i, column in enumerate((*xyz, z_std)):
+            out[..., i] = column[rows]
+    out = out.reshape(-1, 4)
+    return out[np.isfinite(out).all(axis=1)]
 
 
 def _points_loop(r_min, width, mean, offset, gp_std, supported, cos_c, sin_c, rotation,
@@ -410,7 +463,7 @@ def ground_offsets(z, z_hat, ground, segment, bin_index, num_segments: int, num_
     m, n = int(num_segments), int(num_bins)
     args = (np.asarray(z), np.asarray(z_hat), np.asarray(ground, dtype=bool),
             np.asarray(segment), np.asarray(bin_index), m, n, 3.0 * float(noise_std))
-    out = run(compiled, _ground_offsets_compiled, _ground_offsets_numpy, *args)
+    out = OFFSETS.run(compiled, *args)
     # None: the kernel met a residual that is not finite, which the reference handles
     return _ground_offsets_numpy(*args) if out is None else out
 
@@ -582,6 +635,23 @@ def _sums_to_edges(sums, counts, m, n, centre):
 _bucket_of_rank = kernel(_bucket_of_rank) or _bucket_of_rank
 _median_of = kernel(_median_of) or _median_of
 _sums_to_edges = kernel(_sums_to_edges) or _sums_to_edges
-_ground_offsets_compiled = kernel(_ground_offsets_kernel)
+
+
+def _offsets_examples(dtype):
+    z = np.ones(2, dtype)  # z_hat in the points' precision, as the labels
+    index = np.zeros(2, np.int32)
+    return [(z, z * 0, np.ones(2, bool), index, index, 2, 2, 0.3)]
+
+
+def _points_examples(_dtype):
+    segments, edges = np.ones(2), np.zeros((2, 3))
+    return [(np.zeros(2), segments, edges, edges, edges, np.ones(2, bool), segments, segments,
+             np.eye(3), np.zeros(3), False, True)]
+
+
+OFFSETS = Twin('ground offsets', _ground_offsets_numpy, kernel(_ground_offsets_kernel),
+               _offsets_examples)
 # the points kernel calls the compiled rise (None without numba)
-_points_compiled = kernel(_points_loop) if _rise_compiled is not None else None
+POINTS = Twin('surface rows', _points_numpy,
+              kernel(_points_loop) if _rise_compiled is not None else None, _points_examples)
+STAGES = (Stage('surface', 'ours', None, (OFFSETS, POINTS)),)

@@ -1,0 +1,42 @@
+# SPDX-License-Identifier: Apache-2.0
+"""The GP kernel [paper, eq. 7]: Paciorek & Schervish's non-stationary squared exponential in 1-D.
+
+    k(r_i, r_j) = sigma_f^2 (L_i^2)^(1/4) (L_j^2)^(1/4) ((L_i^2 + L_j^2) / 2)^(-1/2)
+                  * exp(-(r_i - r_j)^2 / (L_i^2 + L_j^2)),        L_i = a d_i
+
+:func:`paciorek` is its one definition. The compiled GP solve and prediction call its compiled
+copy per pair of points; the numpy prediction calls it on arrays. The numpy solve keeps the
+pair geometry (q, prefactor below) of a frame across the thetas of a search and multiplies the
+kernel out of it (``gp._kernel_from_geometry``); test_gp checks that equals this function.
+
+With d fixed per frame, L = a d and the kernel of the d's is the kernel of the L's: the
+prefactor sqrt(2 d_i d_j / (d_i^2 + d_j^2)) does not depend on a, and
+(r_i - r_j)^2 / (L_i^2 + L_j^2) = q / a^2 with q = (r_i - r_j)^2 / (d_i^2 + d_j^2). So the
+solve passes (d_i, d_j, 1 / a^2) and the prediction (L_i, L_j, 1). The log-gradient of the
+marginal likelihood needs dk / dlog sigma_f = 2 k and dk / dlog a = 2 k q / a^2: q is returned
+for it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .compiled import kernel
+
+
+def paciorek(diff, l_i, l_j, sigma_f2, inv_scale2):
+    """(k, q) of points ``diff`` = r_i - r_j apart with length scales (or factors) l_i, l_j:
+    k = sigma_f2 sqrt(2 l_i l_j / s) exp(-q inv_scale2), q = diff^2 / s, s = l_i^2 + l_j^2
+    (module docstring). Scalars (compiled) or broadcastable arrays (numpy)."""
+    s = l_i * l_i + l_j * l_j
+    prefactor = np.sqrt(2.0 * l_i * l_j / s)
+    q = diff * diff / s
+    return sigma_f2 * prefactor * np.exp(-q * inv_scale2), q
+
+
+def paciorek_kernel(r1, l1, r2, l2, sigma_f):
+    """k(r1_i, r2_j) for broadcastable arrays: r1, l1 (..., n, 1) against r2, l2 (..., 1, m)."""
+    return paciorek(r1 - r2, l1, l2, sigma_f * sigma_f, 1.0)[0]
+
+
+paciorek_compiled = kernel(paciorek) or paciorek  # the numpy function without numba

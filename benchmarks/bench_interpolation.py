@@ -56,6 +56,7 @@ class _Row:
 
     def __init__(self, gp, s):
         self.d, self.r, self.valid = gp.d[s:s + 1], gp.r[s:s + 1], gp.valid[s:s + 1]
+        self.counts = gp.counts[s:s + 1]
         self.mean = gp.mean
         self.backend = 'numpy'  # the dense reference prediction, whatever the frame used
 

@@ -270,11 +270,6 @@ def ablation_variants() -> dict:
       d_i is clipped to one value and L = a d is the same everywhere; when the defaults are
       already that, the paper's non-stationary L instead (d_i in [0.05, 2]);
     * theta frozen: no marginal-likelihood evaluations at all, theta stays at its initial value;
-    * outlier limit fixed: ``outlier_std_factor`` 0 (the leave-one-out std does not widen it);
-    * raw length factors: ``length_factor_smoothing_passes`` 0 (the paper's d_i, not smoothed
-      along the segment);
-    * the wide-terrain rule off: ``outlier_wide_terrain_m`` 0 (obstacle tops that both
-      neighbouring segments continue are rejected like any other);
     * every bool field of SegmenterParams (``use_*`` switches and others) flipped, discovered at
       run time so that new switches appear without code changes.
     """
@@ -288,9 +283,6 @@ def ablation_variants() -> dict:
                'min_length_factor': 0.05, 'max_length_factor': 2.0}}),
         'theta frozen (0 optimizer evaluations)': {'optimizer_first_frame_evaluations': 0,
                                                    'optimizer_max_evaluations': 0},
-        'outlier_std_factor=0': {'outlier_std_factor': 0.0},
-        'length_factor_smoothing_passes=0': {'length_factor_smoothing_passes': 0},
-        'outlier_wide_terrain_m=0': {'outlier_wide_terrain_m': 0.0},
     }
     for f in dataclasses.fields(SegmenterParams):
         if isinstance(f.default, bool):

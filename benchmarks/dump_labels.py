@@ -130,7 +130,7 @@ def dump(out, fixed_theta, variants, seeds, backend):
         print(f'{frame}: {points.shape[0]} points, '
               f'{int(masks[frame + "|defaults|warm"].sum())} ground', flush=True)
     np.savez_compressed(out, **masks)
-    failed = [k.py_func.__name__ for k in getattr(compiled, '_failed', ())]
+    failed = [getattr(k, 'py_func', k).__name__ for k in getattr(compiled, '_failed', ())]
     print(f'{len(masks)} arrays; kernels that failed to compile: {failed or "none"}')
 
 

@@ -1,6 +1,7 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Unit tests of our additions to the paper (additions.py), with hand-computed expectations,
-and of the switches that turn each one off in the segmenter."""
+"""Unit tests of our additions to the paper (plateau, anchor, outliers and the rules of ours in
+lines, length_factors and labels), with hand-computed expectations, and of the switches that
+turn each one off in the segmenter."""
 
 import dataclasses
 import math
@@ -9,11 +10,12 @@ import numpy as np
 import pytest
 
 from gp_ground_segmentation import GroundSegmenter, SegmenterParams
-from gp_ground_segmentation.core.additions import (cross_segment_rise, elevated_plateaus,
-                                                   ground_under_sensor, one_point_line_slopes,
-                                                   outlier_candidates, smooth_length_factors,
-                                                   steep_line_candidates,
-                                                   wide_terrain_candidates)
+from gp_ground_segmentation.core.anchor import ground_under_sensor
+from gp_ground_segmentation.core.labels import cross_segment_rise
+from gp_ground_segmentation.core.length_factors import smooth_length_factors
+from gp_ground_segmentation.core.lines import one_point_line_slopes, training_candidates
+from gp_ground_segmentation.core.outliers import outlier_candidates, wide_terrain_candidates
+from gp_ground_segmentation.core.plateau import elevated_plateaus
 from scenes.synthetic import make_scene, simulate_scan
 
 NAN = np.nan
@@ -273,8 +275,14 @@ def test_compiled_length_factor_smoothing_equals_the_numpy_reference(seed):
 
 
 def test_steep_line_mask():
-    np.testing.assert_array_equal(steep_line_candidates(np.array([0.8, 0.7, NAN, 0.1]), 0.7),
-                                  [True, False, False, False])
+    """Candidates on lines steeper than zeta_b do not train (NaN slopes are not steep); empty
+    bins are no candidates."""
+    slope = np.array([[0.8, 0.7, NAN, 0.1, 2.0]])
+    index = np.array([[0, 1, 2, 3, -1]])
+    for compiled in (False, True):
+        training, candidates, steep = training_candidates(index, slope, 0.7, compiled)
+        np.testing.assert_array_equal(training, [[False, True, True, True, False]])
+        assert (candidates, steep) == (4, 1)
 
 
 # --- switches in the segmenter ---------------------------------------------------------------
@@ -333,7 +341,7 @@ def test_wide_terrain_slope_from_the_previous_candidate_by_hand():
     segment's previous candidate is the ground (0.0 m) at r = 2 m, three empty bins before it:
     it rises 2.0 / 6 = 0.33 m per m over the gap. Kept as terrain up to a 0.33 slope limit, an
     object (a wall over an occlusion shadow) below it."""
-    from gp_ground_segmentation.core.additions import _slope_from_previous_candidate
+    from gp_ground_segmentation.core.outliers import _slope_from_previous_candidate
     z = np.array([[NAN, NAN, NAN, 1.9],
                   [0.0, NAN, NAN, 2.0],
                   [NAN, NAN, NAN, 2.1]])
@@ -363,10 +371,11 @@ def test_each_switch_turns_its_addition_off(mixed_scan):
     cross = run(pts, use_cross_slope_threshold=not SegmenterParams().use_cross_slope_threshold)
     no_chord = run(pts, use_chord_slope_for_single_points=False)
     assert no_chord.stats['steep_line_candidates'] < base.stats['steep_line_candidates']
-    raw_d = run(pts, length_factor_smoothing_passes=0)
-    no_wide = run(pts, outlier_wide_terrain_m=0.0)  # on, it keeps some obstacle tops training
+    raw_d = run(pts, use_length_factor_smoothing=False)
+    raw_rho = run(pts, use_density_ring_normalisation=False)
+    no_wide = run(pts, use_wide_terrain_rule=False)  # on, it keeps some obstacle tops training
     assert no_wide.stats['outlier_candidates'] > base.stats['outlier_candidates']
-    for res in (no_plateaus, no_outliers, no_anchor, cross, no_chord, raw_d, no_wide):
+    for res in (no_plateaus, no_outliers, no_anchor, cross, no_chord, raw_d, raw_rho, no_wide):
         assert not np.array_equal(res.ground_mask, base.ground_mask)  # each one matters here
         assert res.ground_mask.any() and res.obstacle_mask.any()
 
@@ -445,8 +454,8 @@ def test_compiled_plateaus_equal_the_numpy_reference_on_real_candidates(source):
 def test_compiled_cross_segment_rise_equals_the_numpy_reference(seed):
     """The compiled rise equals the np.interp reference bit for bit: rows of their own r
     ranges (clipped look-ups at both ends), a single segment, NaN heights."""
-    from gp_ground_segmentation.core import additions
-    if additions._rise_compiled is None:
+    from gp_ground_segmentation.core import labels
+    if labels._rise_compiled is None:
         pytest.skip('numba not installed')
     rng = np.random.default_rng(seed)
     m_count, n_bins = int(rng.integers(1, 40)), int(rng.integers(1, 30))
@@ -455,9 +464,9 @@ def test_compiled_cross_segment_rise_equals_the_numpy_reference(seed):
     mean = rng.normal(0.0, 1.0, (m_count, n_bins + 1)) * rng.uniform(0.0, 3.0)
     if seed % 3 == 0:
         mean[rng.random(mean.shape) < 0.1] = np.nan
-    reference = additions.cross_segment_rise(edges, mean, 0.3, compiled=False)
-    additions._rise_compiled(edges, mean, 0.3)  # compiled now (the span: np.nanmax's + 1)
-    ours = additions.cross_segment_rise(edges, mean, 0.3)
+    reference = labels.cross_segment_rise(edges, mean, 0.3, compiled=False)
+    labels._rise_compiled(edges, mean, 0.3)  # compiled now (the span: np.nanmax's + 1)
+    ours = labels.cross_segment_rise(edges, mean, 0.3)
     np.testing.assert_array_equal(ours, reference)
 
 
@@ -467,8 +476,8 @@ def test_compiled_wide_terrain_equals_the_numpy_reference(seed):
     bins, terraces of nearly equal heights (comparisons at the tolerance), infinite heights,
     equal ranges (an infinite slope), one or two segments (a neighbour that is the segment
     itself), no r."""
-    from gp_ground_segmentation.core import additions
-    if additions._wide_terrain_compiled is None:
+    from gp_ground_segmentation.core import outliers
+    if outliers._wide_terrain_compiled is None:
         pytest.skip('numba not installed')
     rng = np.random.default_rng(seed)
     m_count, n_bins = int(rng.integers(1, 12)), int(rng.integers(1, 12))
@@ -484,11 +493,11 @@ def test_compiled_wide_terrain_equals_the_numpy_reference(seed):
     for ranges in (r, None):
         args = (mask, z, tolerance)
         options = {'r': ranges, 'max_slope': slope}
-        reference = additions.wide_terrain_candidates(*args, **options, compiled=False)
-        compiled = additions._wide_terrain_compiled(
+        reference = outliers.wide_terrain_candidates(*args, **options, compiled=False)
+        compiled = outliers._wide_terrain_compiled(
             mask, z, np.full(z.shape, NAN) if ranges is None else ranges, tolerance, slope)
         np.testing.assert_array_equal(compiled, reference)
-        np.testing.assert_array_equal(additions.wide_terrain_candidates(*args, **options),
+        np.testing.assert_array_equal(outliers.wide_terrain_candidates(*args, **options),
                                       reference)
 
 
@@ -533,7 +542,7 @@ def test_compiled_chord_slopes_and_anchor_equal_the_numpy_references(source):
 def test_compiled_median_equals_np_median(size):
     """Odd and even counts; ties; zeros of both signs in the middle (np.median decides)."""
     from conftest import compiled_and_reference
-    from gp_ground_segmentation.core.additions import _median
+    from gp_ground_segmentation.core.anchor import _median
     rng = np.random.default_rng(size)
 
     def median(values, compiled=True):
@@ -547,7 +556,7 @@ def test_compiled_median_equals_np_median(size):
 
 
 def test_length_factor_smoothing_keeps_a_ramp_seen_from_a_high_mount():
-    """The mechanism the smoothing is for (additions.smooth_length_factors): a 15 deg ramp
+    """The mechanism the smoothing is for (length_factors.smooth_length_factors): a 15 deg ramp
     seen from 4.5 m, where the raw d_i jump between bins and the kernel's prefactor pulls the
     ground metres above the prior mean down; the leave-one-out test then rejects clean ramp
     candidates. Measured with the wide-terrain rule off: 495 -> 360 rejected, F1 0.943 ->
@@ -557,8 +566,8 @@ def test_length_factor_smoothing_keeps_a_ramp_seen_from_a_high_mount():
     scan = simulate_scan(make_scene('ramp15'), sensor_height_m=4.5, seed=1)
     scores = {}
     for passes, rescue in ((0, 0.0), (5, 0.0), (0, 1.0), (5, 1.0)):
-        params = dataclasses.replace(SegmenterParams(length_factor_smoothing_passes=passes),
-                                     outlier_wide_terrain_m=rescue)
+        params = dataclasses.replace(SegmenterParams(use_length_factor_smoothing=passes > 0),
+                                     use_wide_terrain_rule=rescue > 0)
         res = GroundSegmenter(params).segment(scan.points[:, :3])
         scores[passes, rescue] = (
             truth_metrics(res.ground_mask, scan.is_ground, scan.returned)['f1'],

@@ -102,23 +102,38 @@ def test_compile_later_queues_a_compilation_and_runs_nothing():
     compiled.compile_later(None, 1.0)  # no numba: nothing
 
 
+def test_call_later_calls_once_in_the_background_and_remembers_a_failure():
+    calls = []
+
+    def compiles(x):
+        calls.append(x)
+
+    def fails():
+        raise RuntimeError('no LLVM here')
+    compiled.call_later(compiles, 1.0)
+    compiled.call_later(compiles, 2.0)  # queued already: not again
+    compiled.call_later(fails)
+    assert compiled.wait(300.0)
+    assert calls == [1.0] and compiled.failed(fails) and not compiled.failed(compiles)
+
+
 def test_gp_warm_up_leaves_the_std_kernel_to_the_background_when_asked():
-    """gp_compiled.warm_up(std_now=False) (the segmenter's, when the labels do not use the GP
-    std) compiles the solve and prediction kernels and queues the std's, the background
-    compiler's first job; with std_now=True (the default) it is compiled before returning. In
-    fresh interpreters: this one has every kernel loaded already."""
+    """stages.compile_round_off(background_too=False) (the segmenter's warm_up, when the labels
+    do not use the GP std) compiles the solve and prediction kernels and queues the std's, the
+    background compiler's first job; with background_too=True it is compiled before returning.
+    In fresh interpreters: this one has every kernel loaded already."""
     import subprocess
     import sys
     from pathlib import Path
     script = """if True:
-        from gp_ground_segmentation.core import compiled, gp_compiled
-        gp_compiled.warm_up(std_now={std_now})
-        queued = [k.py_func.__name__ for k, _ in compiled._queued]
-        print('QUEUED', queued, 'READY', len(gp_compiled._std_into.overloads))
+        from gp_ground_segmentation.core import compiled, predict, stages
+        stages.compile_round_off(background_too={now})
+        queued = [getattr(k, 'py_func', k).__name__ for k, _ in compiled._queued]
+        print('QUEUED', queued, 'READY', len(predict._std_into.overloads))
         """
     root = Path(__file__).resolve().parents[1]
-    for std_now, expected in ((False, "QUEUED ['_std_into']"), (True, 'QUEUED [] READY 1')):
-        out = subprocess.run([sys.executable, '-c', script.format(std_now=std_now)], cwd=root,
+    for now, expected in ((False, "QUEUED ['std_batched']"), (True, 'QUEUED [] READY 1')):
+        out = subprocess.run([sys.executable, '-c', script.format(now=now)], cwd=root,
                              capture_output=True, text=True, timeout=300)
         assert out.returncode == 0, out.stderr[-2000:]
         assert expected in out.stdout, out.stdout

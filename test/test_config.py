@@ -95,6 +95,10 @@ def test_namespaced_section(tmp_path):
     ('processing_budget_ms: .nan', ['processing_budget_ms', 'finite']),
     ('slope_floor: 0.5\n    slope_ceiling: 0.4', ['slope_floor']),
     ('nested:\n      deep: 1.0', ['nested.deep']),
+    # an earlier version's key and off values name what replaced them
+    ('ground_threshold_std_factor: 0.0', ['ground_threshold_std_factor', 'use_std_threshold']),
+    ('outlier_wide_terrain_m: 0.0', ['outlier_wide_terrain_m', 'use_wide_terrain_rule: false']),
+    ('length_factor_smoothing_passes: 0', ['use_length_factor_smoothing: false']),
 ])
 def test_bad_values_name_the_key(tmp_path, body, words):
     path = _write(tmp_path, f'ground_segmentation:\n  ros__parameters:\n    {body}\n')

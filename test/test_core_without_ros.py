@@ -35,7 +35,9 @@ SCRIPT = textwrap.dedent('''
     import gp_ground_segmentation
     from gp_ground_segmentation import GroundSegmenter, SegmenterParams
     import gp_ground_segmentation.core as core
-    from gp_ground_segmentation.core import additions, gp, grid, lines, params, segmenter
+    from gp_ground_segmentation.core import (anchor, gp, grid, labels, length_factors, lines,
+                                             outliers, paciorek, params, plateau, predict,
+                                             segmenter, stages, structure, surface)
 
     rng = np.random.default_rng(0)
     r = rng.uniform(3.0, 40.0, 20000)
@@ -62,6 +64,6 @@ def test_core_imports_and_segments_without_ros():
     # (2 of the box's 35 random points are called ground). The box is 35 points scattered
     # 0.5-1.5 m above a 0.1 slope: over seeds 0-39 of this very scene the obstacle recall is
     # 0.983 on average, 0.879 at worst, and with the paper's unsmoothed length factors
-    # (length_factor_smoothing_passes=0) 0.988 / 0.889 (RESULTS.md, "Length factors smoothed
+    # (use_length_factor_smoothing=False) 0.988 / 0.889 (RESULTS.md, "Length factors smoothed
     # along the segment"), so the limit is set for the scene, not for one lucky seed
     assert result['ground_recall'] > 0.98 and result['obstacle_recall'] > 0.9

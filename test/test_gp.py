@@ -1,5 +1,6 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Unit tests of the whole-frame GP (gp.py) against formulas written out directly.
+"""Unit tests of the whole-frame GP (paciorek.py, gp.py, predict.py) against formulas written out
+directly.
 
 References are computed per segment with scalar Python loops (the Paciorek kernel exactly as
 printed in the paper), dense numpy linear algebra and scipy.stats.multivariate_normal, on
@@ -7,15 +8,17 @@ random padded problems: several segments of different lengths, masked-out candid
 segment with a single candidate and segments with none.
 """
 
+import dataclasses
 import math
 
 import numpy as np
 import pytest
 from scipy.stats import multivariate_normal
 
-from gp_ground_segmentation.core import gp_compiled
-from gp_ground_segmentation.core.gp import (FrameGP, GroundAnchor, length_scale_factors,
-                                            paciorek_kernel)
+from gp_ground_segmentation.core import compiled, gp as gp_module, paciorek, predict
+from gp_ground_segmentation.core.gp import FrameGP, GroundAnchor, solve_batched
+from gp_ground_segmentation.core.length_factors import length_scale_factors
+from gp_ground_segmentation.core.paciorek import paciorek_kernel
 
 BOUNDS = [(0.01, 20.0), (0.05, 200.0), (0.005, 2.0)]
 
@@ -135,6 +138,44 @@ def test_paciorek_constant_length_scale_is_squared_exponential():
         np.testing.assert_allclose(got, se, rtol=1e-13, atol=1e-300)
 
 
+def test_one_paciorek_kernel_on_every_path():
+    """paciorek() is the one definition: its compiled copy (what the compiled solve and
+    prediction call), the numpy solve's geometry form (q and prefactor kept across thetas)
+    and the compiled solve's K agree with it, and q gives its log-gradient in a
+    (dk/dlog a = 2 k q / a^2, against finite differences)."""
+    rng = np.random.default_rng(4)
+    r, z, d, mask = random_problem(4)
+    theta = (0.8, 1.7, 0.05)
+    gp = FrameGP(r, z, d, mask, backend='numpy')
+    valid = gp.valid[:, :, None] & gp.valid[:, None, :]
+    diff = gp.r[:, :, None] - gp.r[:, None, :]
+    k, q = paciorek.paciorek(diff, gp.d[:, :, None], gp.d[:, None, :], theta[0] ** 2,
+                             1.0 / theta[1] ** 2)
+    np.testing.assert_allclose(np.where(valid, k, 0.0), gp.kernel(theta), rtol=1e-14, atol=0)
+    np.testing.assert_array_equal(np.where(valid, q, 0.0), gp._pair_geometry()[0])
+    if compiled.AVAILABLE:
+        one = [paciorek.paciorek_compiled(a, b, c, 1.3, 0.7)
+               for a, b, c in rng.uniform(0.05, 30.0, (200, 3))]
+        many = paciorek.paciorek(*rng.uniform(0.05, 30.0, (200, 3)).T, 1.3, 0.7)
+        assert len(one) == 200 and np.all(np.isfinite(many))
+        rng = np.random.default_rng(4)  # the same draws, one by one
+        for (a, b, c), (k1, q1) in zip(rng.uniform(0.05, 30.0, (200, 3)), one):
+            k2, q2 = paciorek.paciorek(a, b, c, 1.3, 0.7)
+            assert q1 == q2 and k1 == pytest.approx(k2, rel=1e-15)
+        fast = FrameGP(r, z, d, mask, backend='numba')
+        sol = fast.solve(theta)
+        for s_, count in enumerate(fast.counts):
+            np.testing.assert_allclose(sol.pair_terms[0][s_, :count, :count],
+                                       k[s_, :count, :count], rtol=1e-14)
+    # the gradient factor: d k / d log a = 2 k q / a^2
+    step = 1e-6
+    k_up = paciorek.paciorek(diff, gp.d[:, :, None], gp.d[:, None, :], theta[0] ** 2,
+                             1.0 / (theta[1] * math.exp(step)) ** 2)[0]
+    np.testing.assert_allclose(np.where(valid, (k_up - k) / step, 0.0),
+                               np.where(valid, 2.0 * k * q / theta[1] ** 2, 0.0),
+                               rtol=1e-4, atol=1e-9)
+
+
 # --------------------------------------------------------------------------------------------
 # FrameGP: layout, LML and gradient
 # --------------------------------------------------------------------------------------------
@@ -251,7 +292,7 @@ def test_predict_equals_textbook_posterior(seed):
         np.testing.assert_allclose(std[s], sd, rtol=1e-7, atol=1e-7)
 
 
-@pytest.mark.skipif(not gp_compiled.AVAILABLE, reason='numba not installed')
+@pytest.mark.skipif(not compiled.AVAILABLE, reason='numba not installed')
 @pytest.mark.parametrize('seed', range(3))
 def test_std_from_the_kept_kernel_equals_the_std_of_predict(seed):
     r, z, d, mask = random_problem(50 + seed)
@@ -430,11 +471,11 @@ def test_fit_respects_evaluation_cap():
     assert all(worst[cap] <= cap for cap in worst), worst
 
 
-@pytest.mark.skipif(not gp_compiled.AVAILABLE, reason='numba not installed')
+@pytest.mark.skipif(not compiled.AVAILABLE, reason='numba not installed')
 @pytest.mark.parametrize('seed', range(4))
 def test_resolve_with_known_segments_equals_full_solve(seed, monkeypatch):
     """A with_noise copy solved at a theta its parent has solved reuses the parent's segments
-    whose noise is unchanged (gp_compiled.resolve_batched): the solution, J and gradient equal
+    whose noise is unchanged (gp.resolve_batched): the solution, J and gradient equal
     a fresh FrameGP's full solve bit for bit, and segments with new noise do change."""
     r, z, d, mask = random_problem(110 + seed, m_count=6, n_count=12)
     rng = np.random.default_rng(seed)
@@ -444,14 +485,14 @@ def test_resolve_with_known_segments_equals_full_solve(seed, monkeypatch):
     noise = np.zeros(mask.shape)
     noise[np.argmax(mask.sum(axis=1)), :] = 4.0  # the fullest row's candidates: more noise
     calls = []
-    real = gp_compiled.resolve_batched
+    real = gp_module.SOLVE.kernel
 
     def counting(*args):
-        if args[9].size:  # a re-solve with known segments (solve_batched passes none)
+        if args[9].size:  # a re-solve with known segments (a full solve passes none)
             calls.append(int(args[8].sum()))
         return real(*args)
 
-    monkeypatch.setattr(gp_compiled, 'resolve_batched', counting)
+    monkeypatch.setattr(gp_module, 'SOLVE', dataclasses.replace(gp_module.SOLVE, kernel=counting))
     reused = parent.with_noise(noise).solve(theta)
     fresh = FrameGP(r, z, d, mask, noise_var=noise, backend='numba', mean=parent.mean)
     full = fresh.solve(theta)
@@ -484,7 +525,7 @@ def test_cholesky_failure_falls_back_without_raising():
     assert np.all(np.isfinite(mean)) and np.all(np.isfinite(std))
 
 
-@pytest.mark.skipif(not gp_compiled.AVAILABLE, reason='numba not installed')
+@pytest.mark.skipif(not compiled.AVAILABLE, reason='numba not installed')
 @pytest.mark.parametrize('seed', range(4))
 @pytest.mark.parametrize('anchor', [False, True])
 def test_compiled_step_equals_numpy(seed, anchor):
@@ -521,8 +562,7 @@ def test_compiled_step_reports_non_pd_matrices():
     z = np.ones((2, 3))
     counts = np.array([3, 2])
     noise = np.array([[0.0, 0.0, 0.0], [-2.0, 0.0, 0.0]])  # negative variance: not PD
-    ok, logdet, alpha, a_inv, *_ = gp_compiled.solve_batched(r, d, z, noise, counts,
-                                                             1.0, 1.0, 0.1)
+    ok, logdet, alpha, a_inv, *_ = solve_batched(r, d, z, noise, counts, 1.0, 1.0, 0.1)
     assert ok.tolist() == [True, False]
     k = np.exp(-np.subtract.outer(r[0], r[0]) ** 2 / 2.0) + 0.01 * np.eye(3)
     assert logdet[0] == pytest.approx(np.linalg.slogdet(k)[1], rel=1e-12)
@@ -534,8 +574,8 @@ def test_broken_compiled_kernel_falls_back_to_numpy(monkeypatch):
     """If numba cannot compile or run on a platform, the frame is still solved (numpy)."""
     def broken(*args):
         raise RuntimeError('no LLVM here')
-    monkeypatch.setattr(gp_compiled, 'AVAILABLE', True)
-    monkeypatch.setattr(gp_compiled, 'solve_batched', broken)
+    monkeypatch.setattr(gp_module, 'AVAILABLE', True)
+    monkeypatch.setattr(gp_module, 'SOLVE', dataclasses.replace(gp_module.SOLVE, kernel=broken))
     r, z, d, mask = random_problem(1)
     gp = FrameGP(r, z, d, mask, backend='numba')
     ref = FrameGP(r, z, d, mask, backend='numpy').solve((0.7, 1.5, 0.08))
@@ -547,7 +587,7 @@ def test_broken_compiled_kernel_falls_back_to_numpy(monkeypatch):
 
 def test_backend_names():
     r, z, d, mask = random_problem(2)
-    assert FrameGP(r, z, d, mask).backend == ('numba' if gp_compiled.AVAILABLE else 'numpy')
+    assert FrameGP(r, z, d, mask).backend == ('numba' if compiled.AVAILABLE else 'numpy')
     with pytest.raises(ValueError, match='backend'):
         FrameGP(r, z, d, mask, backend='cuda')
 
@@ -558,8 +598,7 @@ def test_compiled_padding_equals_the_numpy_reference(seed, with_anchor):
     """FrameGP's (M, N) -> (S, n) padding: the compiled pass gives the reference's arrays bit
     for bit (dtypes, shapes, padding slots), with rows empty, full and in between, and
     segments with the anchor alone."""
-    from gp_ground_segmentation.core import gp as gp_module
-    if gp_module._pad_compiled is None:
+    if gp_module.PAD.kernel is None:
         pytest.skip('numba not installed')
     rng = np.random.default_rng(seed)
     m_count, n_count = 9, 6
@@ -573,7 +612,7 @@ def test_compiled_padding_equals_the_numpy_reference(seed, with_anchor):
     anchor_segments = rng.random(m_count) < 0.7
     args = (r, z, d, mask, noise_var, with_anchor, anchor_segments,
             rng.uniform(0.1, 2.0, m_count), -1.7, 0.01, float(rng.normal()))
-    for ours, reference in zip(gp_module._pad_compiled(*args), gp_module._pad_numpy(*args)):
+    for ours, reference in zip(gp_module.PAD.kernel(*args), gp_module._pad_numpy(*args)):
         assert ours.dtype == reference.dtype and ours.shape == reference.shape
         np.testing.assert_array_equal(ours, reference)
 
@@ -581,18 +620,17 @@ def test_compiled_padding_equals_the_numpy_reference(seed, with_anchor):
 def test_a_failed_std_kernel_is_remembered_not_compiled_again(monkeypatch):
     """std_batched calls its kernel directly (not through compiled.run): a compile failure,
     here or in the background compiler, must not be retried at every surface read."""
-    from gp_ground_segmentation.core import compiled, gp_compiled
     calls = []
 
     def broken(*args):
         calls.append(1)
         raise RuntimeError('no LLVM here')
-    monkeypatch.setattr(gp_compiled, '_std_into', broken)
+    monkeypatch.setattr(predict, '_std_into', broken)
     args = (np.array([2], dtype=np.intp), np.zeros((1, 2, 2)), np.zeros((1, 2, 2)), 1.0)
     try:
         for _ in range(3):
             with pytest.raises(RuntimeError):
-                gp_compiled.std_batched(*args)
+                predict.std_batched(*args)
         assert calls == [1] and compiled.failed(broken)
     finally:  # the set of failed kernels is the process's: other tests check it is empty
         compiled._failed.discard(broken)
@@ -603,8 +641,8 @@ def test_compiled_slot_noise_equals_the_numpy_reference(with_anchor):
     """with_noise's slots: the compiled pass gives the reference's (S, n) noise (the anchor's
     own, padding 0) and the segments whose noise changed; a compiled copy solves as a numpy
     copy does."""
-    from gp_ground_segmentation.core import gp as module
-    if module._slot_noise_compiled is None:
+    module = gp_module
+    if module.SLOT_NOISE.kernel is None:
         pytest.skip('numba not installed')
     rng = np.random.default_rng(3)
     m_count, n_bins = 20, 10
@@ -619,8 +657,8 @@ def test_compiled_slot_noise_equals_the_numpy_reference(with_anchor):
     noise = np.where(mask & (rng.random(mask.shape) < 0.2), 1e4, 0.0)
     anchor_var = 0.01 if with_anchor else 0.0
     args = (noise, gp.noise_var, gp.valid, gp.is_anchor, gp.segments, gp.bins, anchor_var)
-    ours = module._slot_noise_compiled(*args)
-    reference = gp._slot_noise(*args)
+    ours = module.SLOT_NOISE.kernel(*args)
+    reference = module.SLOT_NOISE.reference(*args)
     for a, b in zip(ours, reference):
         np.testing.assert_array_equal(a, b)
     assert 0 < np.count_nonzero(reference[1]) < gp.segments.size

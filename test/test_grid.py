@@ -12,7 +12,8 @@ import math
 import numpy as np
 import pytest
 
-from gp_ground_segmentation.core.grid import build_grid, relative_density, segment_of
+from gp_ground_segmentation.core.grid import build_grid, segment_of
+from gp_ground_segmentation.core.length_factors import relative_density
 from conftest import compiled_ready
 
 

@@ -90,7 +90,7 @@ SCRIPT = """if True:
                 ros_cloud.split_cloud(msg, ground, valid)
     print('SPLIT FINISHED')
     for kernel in compiled._failed:
-        print('FAILED', kernel.py_func.__name__)
+        print('FAILED', getattr(kernel, 'py_func', kernel).__name__)
 
     # every kernel of the package ran compiled (with the index checks) at least once
     import importlib, pkgutil

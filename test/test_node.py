@@ -198,7 +198,7 @@ def test_parameter_service_valid_invalid_and_effect(kitti_msgs, ros_harness):
     assert node.declared_params == SegmenterParams()
 
     results = _call_set(h, [Parameter('ground_threshold_m', value=0.0),
-                            Parameter('ground_threshold_std_factor', value=0.0),
+                            Parameter('use_std_threshold', value=False),
                             Parameter('max_threshold_m', value=0.0)])
     assert all(r.successful for r in results), [r.reason for r in results]
     assert node.get_parameter('ground_threshold_m').value == 0.0

@@ -14,6 +14,7 @@ Failures are injected by monkeypatching ``np.linalg.cholesky`` and
 ``FrameGP.lml_and_gradient`` (the objective of the theta search), so they are deterministic.
 """
 
+import dataclasses
 import itertools
 import time
 import warnings
@@ -24,8 +25,9 @@ from conftest import status_values, wait_for
 
 from gp_ground_segmentation import GroundSegmenter, Hyperparameters, SegmenterParams
 from gp_ground_segmentation.core import segmenter as segmenter_module
-from gp_ground_segmentation.core import gp_compiled
-from gp_ground_segmentation.core.gp import FrameGP, length_scale_factors
+from gp_ground_segmentation.core import compiled, gp as gp_module, length_factors, stages
+from gp_ground_segmentation.core.gp import FrameGP
+from gp_ground_segmentation.core.length_factors import length_scale_factors
 from scenes.synthetic import make_scene, simulate_scan
 
 # Widest hyperparameter bounds SegmenterParams accepts (each field's own min/max).
@@ -256,9 +258,10 @@ def test_segment_with_theta_at_every_bound_corner(ramp_points, frozen):
 
 @pytest.mark.parametrize('density_rel', [1e-9, 1e9])
 def test_segment_with_extreme_relative_density(ramp_points, monkeypatch, density_rel):
-    def extreme(density, candidate_r, mask, *args, **kw):
-        return np.full(density.shape, density_rel)
-    monkeypatch.setattr(segmenter_module, 'relative_density', extreme)
+    def extreme(log_r, log_rho, log_ratio):  # every usable bin's rho: density_rel
+        return np.full(log_r.size, np.log(density_rel))
+    monkeypatch.setattr(length_factors, 'RING', dataclasses.replace(
+        length_factors.RING, reference=extreme, kernel=extreme, exact=False))
     params = SegmenterParams().replace(**WIDE)
     seg = GroundSegmenter(params)
     for _ in range(2):
@@ -297,8 +300,10 @@ def _fail_first_cholesky_calls(monkeypatch, count):
             raise np.linalg.LinAlgError('injected')
         return real(a)
     # the compiled kernel (if used) reports every matrix as not PD: numpy's path runs
-    monkeypatch.setattr(gp_compiled, 'solve_batched',
-                        lambda r, *args: (np.zeros(r.shape[0], dtype=bool),) + (None,) * 6)
+
+    def not_pd(r, *args):
+        return (np.zeros(r.shape[0], dtype=bool),) + (None,) * 6
+    monkeypatch.setattr(gp_module, 'SOLVE', dataclasses.replace(gp_module.SOLVE, kernel=not_pd))
     monkeypatch.setattr(np.linalg, 'cholesky', flaky)
     return state
 
@@ -441,14 +446,14 @@ def test_finite_coordinates_whose_square_overflows(ramp_points, dtype, big):
 # --------------------------------------------------------------------------------------------
 # A broken compiled kernel: that segmenter falls back to numpy, no other is affected
 # --------------------------------------------------------------------------------------------
-@pytest.mark.skipif(not gp_compiled.AVAILABLE, reason='numba not installed')
+@pytest.mark.skipif(not compiled.AVAILABLE, reason='numba not installed')
 def test_broken_compiled_kernel_makes_that_segmenter_use_numpy(ramp_points, monkeypatch):
     params = SegmenterParams(optimizer_first_frame_evaluations=3)
     reference = GroundSegmenter(params, backend='numpy').segment(ramp_points)
 
     def broken(*args):
         raise RuntimeError('no LLVM here')
-    monkeypatch.setattr(gp_compiled, 'solve_batched', broken)
+    monkeypatch.setattr(gp_module, 'SOLVE', dataclasses.replace(gp_module.SOLVE, kernel=broken))
     seg = GroundSegmenter(params, backend='numba')
     res = seg.segment(ramp_points)
     assert seg.backend == 'numpy'
@@ -456,11 +461,11 @@ def test_broken_compiled_kernel_makes_that_segmenter_use_numpy(ramp_points, monk
     assert GroundSegmenter(params).backend == 'numba'  # a choice per segmenter, not global
 
 
-@pytest.mark.skipif(not gp_compiled.AVAILABLE, reason='numba not installed')
+@pytest.mark.skipif(not compiled.AVAILABLE, reason='numba not installed')
 def test_failed_warm_up_switches_the_segmenter_to_numpy(ramp_points, monkeypatch):
-    def broken(std_now=True):
+    def broken(background_too=False):
         raise RuntimeError('no LLVM here')
-    monkeypatch.setattr(gp_compiled, 'warm_up', broken)
+    monkeypatch.setattr(stages, 'compile_round_off', broken)
     seg = GroundSegmenter(backend='auto')
     with pytest.raises(RuntimeError, match='no LLVM'):
         seg.warm_up()
@@ -476,13 +481,13 @@ def test_warm_up_waits_for_background_stages_only_when_the_cache_was_filled(
     """A GP step that loads fast (cache filled) -> wait for the background stages to load too;
     one that took longer than _GP_CACHE_LOAD_MAX_S (compiled: cache empty) -> no wait, since
     they are compiling and frames take their numpy twins meanwhile."""
-    from gp_ground_segmentation.core import compiled, gp_compiled, segmenter
+    from gp_ground_segmentation.core import segmenter
     if not compiled.AVAILABLE:
         pytest.skip('numba not installed')
     slow = segmenter._GP_CACHE_LOAD_MAX_S + 0.05
-    monkeypatch.setattr(gp_compiled, 'warm_up',
-                        lambda std_now=True: time.sleep(slow if gp_load_s is None
-                                                        else gp_load_s))
+    monkeypatch.setattr(stages, 'compile_round_off',
+                        lambda background_too=False: time.sleep(slow if gp_load_s is None
+                                                                else gp_load_s))
     calls = []
     monkeypatch.setattr(compiled, 'wait', lambda timeout_s=None: calls.append(timeout_s))
     GroundSegmenter().warm_up()

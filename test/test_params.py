@@ -192,3 +192,45 @@ def test_describe_params_states_units(f):
         assert '(m)' in text, text  # metres, said explicitly
     else:
         assert any(token in text for token in UNIT_TOKENS), text
+
+
+# --- one switch convention; an earlier version's keys and values ----------------------------
+
+def test_every_addition_is_a_use_switch_of_the_stage_table():
+    """Every use_* field is a bool that switches a row of the stage table (core/stages.py),
+    every switch of the table is a use_* bool field, and no number turns a rule off: the values
+    that did (RETIRED_OFF_VALUES) lie outside their fields' ranges now."""
+    from gp_ground_segmentation.core import params, stages
+    use_fields = {f.name for f in FIELDS if f.name.startswith('use_')}
+    assert all(isinstance(getattr(DEFAULTS, name), bool) for name in use_fields)
+    switches = {stage.switch for stage in stages.STAGES if stage.switch is not None}
+    assert switches == use_fields
+    assert all(stage.origin in ('paper', 'ours') for stage in stages.STAGES)
+    assert all(stage.origin == 'ours' for stage in stages.STAGES if stage.switch)
+    meta = {f.name: f.metadata for f in FIELDS}
+    for name, (off, switch) in params.RETIRED_OFF_VALUES.items():
+        assert not meta[name]['min'] <= off <= meta[name]['max'] and switch in use_fields
+
+
+@pytest.mark.parametrize('change, words', [
+    ({'outlier_wide_terrain_m': 0.0}, ['outlier_wide_terrain_m: 0.0', 'use_wide_terrain_rule']),
+    ({'length_factor_smoothing_passes': 0},
+     ['length_factor_smoothing_passes: 0', 'use_length_factor_smoothing']),
+    ({'outlier_std_factor': 0.0}, ['outlier_std_factor: 0.0', 'use_outlier_std_limit']),
+])
+def test_an_old_off_value_names_its_switch_in_one_line(change, words):
+    for make in (lambda: SegmenterParams(**change).validate(), lambda: DEFAULTS.replace(**change)):
+        with pytest.raises(ValueError) as exc:
+            make()
+        assert all(word in str(exc.value) for word in words) and '\n' not in str(exc.value)
+
+
+def test_an_old_key_names_what_replaced_it_in_one_line():
+    for make in (lambda: SegmenterParams(ground_threshold_std_factor=1.0),
+                 lambda: DEFAULTS.replace(ground_threshold_std_factor=0.0)):
+        with pytest.raises(TypeError) as exc:
+            make()
+        message = str(exc.value)
+        assert message.startswith('ground_threshold_std_factor: replaced by use_std_threshold')
+        assert 'std_threshold_factor' in message and '\n' not in message
+    assert SegmenterParams(use_std_threshold=True, std_threshold_factor=1.0).validate()

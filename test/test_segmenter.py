@@ -364,8 +364,8 @@ def _rows_to_fill(seed):
 def test_first_known_along_rows_is_column_0_of_the_filled_rows():
     """The anchor's length factor takes the shortcut; it must equal the full fill's column 0
     (rows with a known first entry, a later one, none at all)."""
-    from gp_ground_segmentation.core.segmenter import (_fill_along_rows,
-                                                       _first_known_along_rows)
+    from gp_ground_segmentation.core.anchor import _first_known_along_rows
+    from gp_ground_segmentation.core.length_factors import _fill_along_rows
     values, known = _rows_to_fill(3)
     np.testing.assert_array_equal(_first_known_along_rows(values, known),
                                   _fill_along_rows(values, known)[:, 0])
@@ -374,13 +374,13 @@ def test_first_known_along_rows_is_column_0_of_the_filled_rows():
 def test_compiled_fill_to_edges_equals_the_numpy_reference():
     """The length factors at the bin edges of the GP's rows: the compiled pass gives the
     reference's values (rows with a known first entry, a later one, none at all)."""
-    from gp_ground_segmentation.core import segmenter as module
-    if module._fill_rows_to_edges_compiled is None:
+    from gp_ground_segmentation.core import length_factors as module
+    if module.EDGES.kernel is None:
         pytest.skip('numba not installed')
     values, known = _rows_to_fill(5)
     rows = np.flatnonzero(np.random.default_rng(5).random(40) < 0.7)
     rows[:3] = [0, 1, 2]
-    np.testing.assert_array_equal(module._fill_rows_to_edges_compiled(values, known, rows),
+    np.testing.assert_array_equal(module.EDGES.kernel(values, known, rows),
                                   module._fill_rows_to_edges(values, known, rows))
 
 
@@ -389,7 +389,7 @@ def test_compiled_label_pass_equals_the_numpy_reference(dtype):
     """z_hat and the height test of every point: the compiled pass equals the reference bit
     for bit, in either precision, with points right at the threshold (where one rounding
     differently would flip the label)."""
-    from gp_ground_segmentation.core import segmenter as module
+    from gp_ground_segmentation.core import labels as module
     if module._label_compiled is None:
         pytest.skip('numba not installed')
     rng = np.random.default_rng(7)
@@ -419,8 +419,8 @@ def test_compiled_valid_columns_equal_the_numpy_reference(dtype, columns):
     """The valid mask and the valid points' x, y, z: the compiled pass gives the reference's
     arrays (NaN, inf, the (0, 0, 0) no-return, points with one or two zero coordinates), on a
     contiguous (N, 3) array and on the (N, 3) view of an (N, 4) cloud."""
-    from gp_ground_segmentation.core import segmenter as module
-    if module._valid_columns_compiled is None:
+    from gp_ground_segmentation.core import grid as module
+    if module.VALID_COLUMNS.kernel is None:
         pytest.skip('numba not installed')
     rng = np.random.default_rng(9)
     points = rng.normal(0.0, 10.0, (3000, columns)).astype(dtype)
@@ -430,7 +430,7 @@ def test_compiled_valid_columns_equal_the_numpy_reference(dtype, columns):
     points[90:120, 2] = np.inf
     rng.shuffle(points)
     xyz = points[:, :3]
-    ours = module._valid_columns_compiled(xyz)
+    ours = module.VALID_COLUMNS.kernel(xyz)
     reference = module._valid_columns(xyz)
     for a, b in zip(ours, reference):
         assert a.dtype == b.dtype and a.flags.c_contiguous
@@ -444,10 +444,9 @@ def test_compiled_outlier_pass_equals_the_numpy_reference(seed, worst_above_only
     """New outliers of one robust pass: the compiled pass over the GP's slots gives the
     reference's mask (leave-one-out residuals to the grid, outlier_candidates, minus the
     outliers already known), with the anchor, empty segments and residuals on both sides."""
-    from gp_ground_segmentation.core import additions
-    from gp_ground_segmentation.core import segmenter as module
+    from gp_ground_segmentation.core import outliers as module
     from gp_ground_segmentation.core.gp import FrameGP, GroundAnchor
-    if module._new_outliers_compiled is None:
+    if module.NEW_OUTLIERS.kernel is None:
         pytest.skip('numba not installed')
     rng = np.random.default_rng(seed)
     m_count, n_bins = 30, 12
@@ -464,9 +463,9 @@ def test_compiled_outlier_pass_equals_the_numpy_reference(seed, worst_above_only
     counts = []
     for std_factor in (0.0, 3.0):
         args = (0.5, 0.5, worst_above_only, std_factor)
-        ours = module._new_outliers_compiled(sol.alpha, sol.a_inv, gp.valid, gp.is_anchor,
-                                             gp.segments, gp.bins, known, *args)
-        reference = ~known & additions.outlier_candidates(
+        ours = module.NEW_OUTLIERS.kernel(sol.alpha, sol.a_inv, gp.valid, gp.is_anchor,
+                                          gp.segments, gp.bins, known, *args)
+        reference = ~known & module.outlier_candidates(
             gp.to_grid(gp.loo_residuals(sol), np.nan), above_m=args[0], below_m=args[1],
             worst_above_only=worst_above_only, loo_std=gp.to_grid(gp.loo_std(sol), np.nan),
             std_factor=std_factor)
@@ -480,11 +479,12 @@ def test_compiled_outlier_pass_equals_the_numpy_reference(seed, worst_above_only
 @pytest.mark.parametrize('seed', range(40))
 def test_compiled_length_factors_equal_the_numpy_reference(seed):
     """d_i of every bin: the compiled passes with numpy's log and exp between them give the
-    reference's values (relative_density, length_scale_factors, smooth_length_factors) bit
-    for bit: empty bins, NaN and infinite slopes, zero density, r = 0, both flat branches,
-    0 to 5 smoothing passes, a grid without a usable bin; each pass equals its numpy twin."""
+    plain numpy formulas' values (relative_density or rho~ itself, length_scale_factors,
+    smooth_length_factors) bit for bit: empty bins, NaN and infinite slopes, zero density,
+    r = 0, both flat branches, 0 to 5 smoothing passes, the ring normalisation on and off, a
+    grid without a usable bin; each pass equals its numpy twin."""
     from gp_ground_segmentation.core import compiled
-    from gp_ground_segmentation.core import segmenter as module
+    from gp_ground_segmentation.core import length_factors as module
     if not compiled.AVAILABLE:
         pytest.skip('numba not installed')
     rng = np.random.default_rng(seed)
@@ -496,34 +496,71 @@ def test_compiled_length_factors_equal_the_numpy_reference(seed):
     candidate_r = np.where(rng.random(shape) < 0.2, np.nan, rng.uniform(0.0, 80.0, shape))
     candidate_r[rng.random(shape) < 0.02] = 0.0
     training = rng.random(shape) < (0.0 if seed == 0 else rng.uniform(0.0, 1.0))
-    args = (slope, density, candidate_r, training, 0.02, 0.9, bool(seed % 2), 0.05, 50.0,
-            int(rng.integers(0, 6)))
-    module._length_factors_fused(*args)  # queues the passes' compilation
+    passes, normalise = int(rng.integers(0, 6)), seed % 4 != 3
+    params = SegmenterParams(
+        slope_floor=0.02, slope_ceiling=0.9, density_in_flat_branch=bool(seed % 2),
+        min_length_factor=0.05, max_length_factor=50.0, use_length_factor_smoothing=passes > 0,
+        length_factor_smoothing_passes=max(passes, 1), use_density_ring_normalisation=normalise)
+    args = (slope, density, candidate_r, training, params)
+    module.frame_length_factors(*args)  # queues the passes' compilation
     assert compiled.wait(300.0)
-    passes = (module._usable_bins_compiled, module._ring_deviation_compiled,
-              module._raw_length_factors_compiled, module._smooth_compiled)
-    assert not any(compiled.failed(k) for k in passes)  # else the twins ran: proves nothing
-    np.testing.assert_array_equal(module._length_factors_fused(*args),
-                                  module._length_factors_numpy(*args))
+    kernels = [twin.kernel for twin in (module.USABLE, module.RING, module.EQ12, module.SMOOTH)]
+    assert not any(compiled.failed(k) for k in kernels)  # else the twins ran: proves nothing
+    rho = (module.relative_density(density, candidate_r, training) if normalise
+           else np.where(module.usable_bins(density, candidate_r, training), density, 1.0))
+    d = module.length_scale_factors(slope, rho, slope_floor=0.02, slope_ceiling=0.9,
+                                    density_in_flat_branch=bool(seed % 2), d_min=0.05,
+                                    d_max=50.0)
+    reference = module.smooth_length_factors(d, training, passes, compiled=False)
+    np.testing.assert_array_equal(module.frame_length_factors(*args), reference)
+    np.testing.assert_array_equal(module.frame_length_factors(*args, compiled=False), reference)
     pass_args = (density, candidate_r, training, slope, 0.02, 0.9)
-    for ours, twin in zip(module._usable_bins_compiled(*pass_args),
-                          module._usable_bins_reference(*pass_args)):
+    for ours, twin in zip(module.USABLE.kernel(*pass_args), module.USABLE.reference(*pass_args)):
         np.testing.assert_array_equal(ours, twin)
-    usable, r_usable, rho_usable = module._usable_bins_reference(*pass_args)[:3]
+    usable, r_usable, rho_usable = module.USABLE.reference(*pass_args)[:3]
     logs = (np.log(r_usable), np.log(rho_usable), float(np.log(1.15)))
-    np.testing.assert_array_equal(module._ring_deviation_compiled(*logs),
-                                  module.ring_log_deviation(*logs))
+    np.testing.assert_array_equal(module.RING.kernel(*logs), module.ring_log_deviation(*logs))
+
+
+def test_eq12_and_its_slope_terms_are_one_formula_on_every_path():
+    """length_factor (the scalar eq. 12 the compiled pass calls) and slope_term equal their
+    vectorised forms bit for bit, run as Python and compiled, on every branch: NaN, +-inf,
+    zero, negative and ordinary slopes; rho <= 0, NaN and ordinary; flat with and without the
+    density in the flat branch; values clipped at both ends."""
+    from gp_ground_segmentation.core import compiled
+    from gp_ground_segmentation.core import length_factors as module
+    rng = np.random.default_rng(12)
+    slope = np.concatenate([[np.nan, np.inf, -np.inf, 0.0, -0.01, 0.02, 0.9, 5.0],
+                            rng.uniform(-2.0, 2.0, 200)])
+    inverse_slope, flat = module.slope_terms(slope, 0.02, 0.9)
+    rho = np.concatenate([[0.0, -1.0, np.nan, 1e-9, 1e9], rng.uniform(0.1, 10.0, 203)])
+    log_flat = float(np.log(1.0 / 0.02))
+    scalar_kernels = [(module.slope_term, module.length_factor)]
+    if compiled.AVAILABLE:
+        scalar_kernels.append((module._slope_term, module._length_factor))
+    for slope_term, length_factor in scalar_kernels:
+        terms = [slope_term(g, 0.02, 0.9) for g in slope]
+        np.testing.assert_array_equal([t[0] for t in terms], inverse_slope)
+        np.testing.assert_array_equal([t[1] for t in terms], flat)
+        for in_flat in (False, True):
+            vector = module.factors_from_logs(np.log(inverse_slope), rho, flat,
+                                              flat_value=log_flat,
+                                              density_in_flat_branch=in_flat, d_min=0.05,
+                                              d_max=2.0)
+            scalar = [length_factor(v, r, f, log_flat, in_flat, 0.05, 2.0)
+                      for v, r, f in zip(np.log(inverse_slope), rho, flat)]
+            np.testing.assert_array_equal(scalar, vector)
+    assert flat.any() and (vector == 0.05).any() and (vector == 2.0).any()
 
 
 @pytest.mark.parametrize('seed', range(6))
 def test_compiled_wide_terrain_of_an_outlier_pass_equals_the_numpy_reference(seed):
     """The wide-terrain rule inside the outlier pass: the compiled pass over the GP's slots
     (residual, z and r grids, then the wide-terrain loop) removes from ``new`` the same
-    candidates as the reference (FrameGP.to_grid and additions.wide_terrain_candidates)."""
-    from gp_ground_segmentation.core import additions
-    from gp_ground_segmentation.core import segmenter as module
+    candidates as the reference (FrameGP.to_grid and outliers.wide_terrain_candidates)."""
+    from gp_ground_segmentation.core import outliers as module
     from gp_ground_segmentation.core.gp import FrameGP, GroundAnchor
-    if module._not_wide_terrain_compiled is None:
+    if module.NOT_WIDE.kernel is None:
         pytest.skip('numba not installed')
     rng = np.random.default_rng(seed)
     m_count, n_bins = 30, 12
@@ -539,11 +576,10 @@ def test_compiled_wide_terrain_of_an_outlier_pass_equals_the_numpy_reference(see
     new = mask & (rng.random(mask.shape) < 0.4)
     kept = []
     for tolerance, max_slope in ((0.3, 0.3), (1.0, np.inf), (0.05, 1.0)):
-        ours = module._not_wide_terrain_compiled(new, sol.alpha, sol.a_inv, gp.valid,
-                                                 gp.is_anchor, gp.segments, gp.bins, gp.r,
-                                                 gp.z, tolerance, max_slope)
+        ours = module.NOT_WIDE.kernel(new, sol.alpha, sol.a_inv, gp.valid, gp.is_anchor,
+                                      gp.segments, gp.bins, gp.r, gp.z, tolerance, max_slope)
         above = new & (gp.to_grid(gp.loo_residuals(sol), np.nan) > 0)
-        reference = new & ~additions.wide_terrain_candidates(
+        reference = new & ~module.wide_terrain_candidates(
             above, gp.to_grid(gp.z, np.nan), tolerance, r=gp.to_grid(gp.r, np.nan),
             max_slope=max_slope, compiled=False)
         np.testing.assert_array_equal(ours, reference)
@@ -556,9 +592,9 @@ def test_compiled_outlier_passes_survive_a_zero_leave_one_out_diagonal():
     leave-one-out residual infinite or NaN, as the numpy references compute it, instead of a
     ZeroDivisionError out of segment(): both compiled passes equal their loops run as Python
     on numpy scalars (numpy's division semantics)."""
-    from gp_ground_segmentation.core import segmenter as module
+    from gp_ground_segmentation.core import outliers as module
     from gp_ground_segmentation.core.gp import FrameGP, GroundAnchor
-    if module._new_outliers_compiled is None or module._not_wide_terrain_compiled is None:
+    if module.NEW_OUTLIERS.kernel is None or module.NOT_WIDE.kernel is None:
         pytest.skip('numba not installed')
     rng = np.random.default_rng(3)
     m_count, n_bins = 8, 6
@@ -578,12 +614,12 @@ def test_compiled_outlier_passes_survive_a_zero_leave_one_out_diagonal():
     args = (alpha, a_inv, gp.valid, gp.is_anchor, gp.segments, gp.bins, known, 0.5, 0.5,
             False, 3.0)
     with np.errstate(divide='ignore', invalid='ignore'):
-        new = module._new_outliers_compiled(*args)
-        np.testing.assert_array_equal(new, module._new_outliers_compiled.py_func(*args))
+        new = module.NEW_OUTLIERS.kernel(*args)
+        np.testing.assert_array_equal(new, module.NEW_OUTLIERS.kernel.py_func(*args))
         wide_args = (new, alpha, a_inv, gp.valid, gp.is_anchor, gp.segments, gp.bins, gp.r,
                      gp.z, 0.3, 0.3)
-        np.testing.assert_array_equal(module._not_wide_terrain_compiled(*wide_args),
-                                      module._not_wide_terrain_compiled.py_func(*wide_args))
+        np.testing.assert_array_equal(module.NOT_WIDE.kernel(*wide_args),
+                                      module.NOT_WIDE.kernel.py_func(*wide_args))
     s1, i1 = slots[1]  # -inf: below the noise-spike limit (+inf meets an infinite limit)
     assert new[gp.segments[s1], gp.bins[s1, i1]]
 
@@ -592,8 +628,7 @@ def test_compiled_outlier_passes_survive_a_zero_leave_one_out_diagonal():
 def test_compiled_training_mask_and_anchor_rows_equal_the_numpy_reference(seed):
     """Candidates not on steep lines (with the counts) and the anchor's rows and length
     factors: the compiled passes give their numpy references' values."""
-    from gp_ground_segmentation.core import compiled
-    from gp_ground_segmentation.core import segmenter as module
+    from gp_ground_segmentation.core import anchor, compiled, lines
     if not compiled.AVAILABLE:
         pytest.skip('numba not installed')
     rng = np.random.default_rng(seed)
@@ -603,14 +638,14 @@ def test_compiled_training_mask_and_anchor_rows_equal_the_numpy_reference(seed):
     candidate_index[:2] = -1  # rows without a candidate
     slope = np.where(rng.random(shape) < 0.3, np.nan, rng.uniform(0.0, 3.0, shape))
     slope[rng.random(shape) < 0.05] = np.inf
-    ours = module._not_steep_compiled(candidate_index, slope, 0.7)
-    reference = module._not_steep(candidate_index, slope, 0.7)
+    ours = lines.NOT_STEEP.kernel(candidate_index, slope, 0.7)
+    reference = lines.NOT_STEEP.reference(candidate_index, slope, 0.7)
     np.testing.assert_array_equal(ours[0], reference[0])
     assert ours[1:] == tuple(int(v) for v in reference[1:])
     d = rng.uniform(0.05, 50.0, shape)
     for training in (reference[0], np.zeros(shape, dtype=bool)):
-        for a, b in zip(module._anchor_rows_compiled(candidate_index, d, training),
-                        module._anchor_rows(candidate_index, d, training)):
+        for a, b in zip(anchor.ANCHOR_ROWS.kernel(candidate_index, d, training),
+                        anchor.ANCHOR_ROWS.reference(candidate_index, d, training)):
             np.testing.assert_array_equal(a, b)
 
 
@@ -622,7 +657,7 @@ def test_warm_up_queues_every_compiled_stage_a_frame_needs(tmp_path):
 
     With an empty numba cache, and every queued kernel must then compile: numba does not
     rebuild a cached kernel when a kernel of another module that it calls changes, so a
-    signature mismatch between them (surface._points_loop calling additions._rise_loop after
+    signature mismatch between them (surface._points_loop calling labels._rise_loop after
     its arguments changed) passed on a machine with the old cache and failed only in a fresh
     clone."""
     from conftest import check_warm_up_in_fresh_cache
@@ -649,15 +684,16 @@ def test_warm_up_queues_every_compiled_stage_a_frame_needs(tmp_path):
     check_warm_up_in_fresh_cache(script, tmp_path)
 
 
-@pytest.mark.parametrize('std_factor, std_now', [(0.0, False), (0.5, True)])
-def test_warm_up_compiles_the_gp_std_first_only_if_labels_use_it(monkeypatch, std_factor,
-                                                                 std_now):
-    from gp_ground_segmentation.core import gp_compiled
+@pytest.mark.parametrize('use_std', [False, True])
+def test_warm_up_compiles_the_gp_std_first_only_if_labels_use_it(monkeypatch, use_std):
+    from gp_ground_segmentation.core import compiled, stages
+    if not compiled.AVAILABLE:
+        pytest.skip('numba not installed')
     asked = []
-    monkeypatch.setattr(gp_compiled, 'warm_up', lambda std_now=True: asked.append(std_now))
-    GroundSegmenter(SegmenterParams(ground_threshold_std_factor=std_factor),
-                    backend='numba').warm_up()
-    assert asked == [std_now]
+    monkeypatch.setattr(stages, 'compile_round_off',
+                        lambda background_too=False: asked.append(background_too))
+    GroundSegmenter(SegmenterParams(use_std_threshold=use_std), backend='numba').warm_up()
+    assert asked == [use_std]
 
 
 def test_the_queued_gp_std_signature_is_the_one_frames_use():
@@ -672,15 +708,16 @@ def test_the_queued_gp_std_signature_is_the_one_frames_use():
         pytest.skip('numba not installed')
     script = """if True:
         from gp_ground_segmentation import GroundSegmenter
-        from gp_ground_segmentation.core import compiled, gp_compiled
+        from gp_ground_segmentation.core import compiled, predict
         from scenes.synthetic import make_scene, simulate_scan
         seg = GroundSegmenter()
         seg.warm_up()
-        queued = [s for k, s in compiled._queued if k is gp_compiled._std_into]
+        compiled.wait(300.0)
+        queued = list(predict._std_into.signatures)
         points = simulate_scan(make_scene('mixed'), seed=3).points
         seg.segment(points).ground_surface.z_std
         seg.segment(points, details=True)
-        used = list(gp_compiled._std_into.signatures)
+        used = list(predict._std_into.signatures)
         print('QUEUED', len(queued), 'SAME', used == queued)
         """
     root = Path(__file__).resolve().parents[1]

@@ -129,10 +129,17 @@ def _surface_points(surface, supported_only, compiled):
 
 
 def _points_compiled_and_reference(surface, supported_only):
-    """(compiled, reference) points of ``surface``, checking that the kernel ran."""
+    """(compiled, reference) points of ``surface``, checking that the kernel ran and that the
+    reference's rows are the surface's x, y, z, z_std."""
     from gp_ground_segmentation.core import surface as module
     out = compiled_and_reference(_surface_points, surface, supported_only)
-    assert module._points_compiled.signatures, 'the points kernel never compiled'
+    assert module.POINTS.kernel.signatures, 'the points kernel never compiled'
+    rows = np.flatnonzero(surface.supported[:, 0]) if supported_only else slice(None)
+    with np.errstate(over='ignore', invalid='ignore'):
+        columns = [np.asarray(c, np.float32)[rows] for c in (surface.x, surface.y, surface.z,
+                                                             surface.z_std)]
+    properties = np.stack(columns, axis=-1).reshape(-1, 4)
+    _assert_same_rows(out[1], properties[np.isfinite(properties).all(axis=1)])
     return out
 
 
@@ -245,7 +252,7 @@ def test_surface_points_follow_the_exact_terrain(ramp):
 def test_z_std_is_lazy_and_equals_the_details_std(ramp):
     _, points, _ = ramp
     params = SegmenterParams()
-    assert params.ground_threshold_std_factor == 0  # the default does not need the std
+    assert not params.use_std_threshold  # the default does not need the std
     plain = GroundSegmenter(params).segment(points)
     detailed = GroundSegmenter(params).segment(points, details=True)
     assert plain.ground_surface._std is None  # not computed by segment()
@@ -264,13 +271,14 @@ def test_z_std_is_lazy_and_equals_the_details_std(ramp):
 def test_z_std_falls_back_to_numpy_when_the_std_kernel_fails(ramp, monkeypatch):
     """The std's kernel may first be compiled at the first z_std read (warm_up leaves it to the
     background): should that fail, the surface still gets its std, from numpy."""
-    from gp_ground_segmentation.core import gp_compiled
+    import dataclasses
+    from gp_ground_segmentation.core import predict
     _, points, _ = ramp
     compiled_std = GroundSegmenter().segment(points).ground_surface.gp_std
 
     def broken(*args):
         raise RuntimeError('no LLVM here')
-    monkeypatch.setattr(gp_compiled, 'std_batched', broken)
+    monkeypatch.setattr(predict, 'STD', dataclasses.replace(predict.STD, kernel=broken))
     surface = GroundSegmenter().segment(points).ground_surface
     # sqrt(sigma_f^2 - k*^T A^-1 k*) cancels where the std is small: another summation order
     # moves it by ~1e-8 m there

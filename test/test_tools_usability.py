@@ -96,12 +96,12 @@ def test_eval_of_an_empty_scan_is_an_error(tmp_path, capsys):
 
 
 def test_replay_loads_the_compiled_kernel_before_the_first_frame(tmp_path, monkeypatch):
-    import gp_ground_segmentation.core.gp_compiled as gp_compiled
+    import gp_ground_segmentation.core.stages as stages
     import gp_ground_segmentation.ros.pipeline as pipeline
     from gp_ground_segmentation.core.segmenter import GroundSegmenter
     calls = []
-    real_warm_up, real_process = gp_compiled.warm_up, pipeline.process_cloud
-    monkeypatch.setattr(gp_compiled, 'warm_up',
+    real_warm_up, real_process = stages.compile_round_off, pipeline.process_cloud
+    monkeypatch.setattr(stages, 'compile_round_off',
                         lambda **kw: (calls.append('warm_up'), real_warm_up(**kw))[1])
     real_segmenter_warm_up = GroundSegmenter.warm_up  # every compiled stage a frame needs
     monkeypatch.setattr(GroundSegmenter, 'warm_up', lambda self: (

@@ -35,9 +35,12 @@ def test_search_space_is_a_narrower_documented_subset():
     assert len(set(names)) == len(names)
     for r in tune.SEARCH_SPACE:
         spec = specs[r.name]
+        assert type(r.low) is type(spec['default']) and r.why
+        if isinstance(r.low, bool):  # a use_* switch: both values are searched
+            assert (r.low, r.high) == (False, True)
+            continue
         assert spec['min'] <= r.low < r.high <= spec['max']
         assert (r.low, r.high) != (spec['min'], spec['max'])
-        assert type(r.low) is type(spec['default']) and r.why
         steps = (getattr(defaults, r.name) - r.low) / r.step
         assert r.low <= getattr(defaults, r.name) <= r.high
         assert abs(steps - round(steps)) < 1e-9, r.name  # the defaults are a grid point

@@ -8,9 +8,9 @@ candidates, rho~), ``lines`` (Algorithm 1 and the steep-line filter), ``length_f
 ``predict`` (the posterior at the bin edges), ``labels`` (the label rule). Ours, each with a
 ``use_*`` switch: ``plateau``, ``anchor``, ``outliers`` (with the wide-terrain rule),
 ``structure``, ``surface`` (the ground surface output), and the rules marked [ours] inside
-``lines``, ``length_factors`` and ``labels``. ``segmenter`` runs them in order; ``params``
-holds every tunable; ``compiled`` compiles and runs the twins; ``sensor_frame`` levels clouds
-not in the sensor frame.
+``lines``, ``length_factors`` and ``labels``. ``segmenter`` runs them in order, ``result``
+holds what it returns, ``params`` every tunable; ``compiled`` compiles and runs the twins;
+``sensor_frame`` levels clouds not in the sensor frame.
 
 Adding a stage, in an afternoon:
 

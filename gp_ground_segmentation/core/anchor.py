@@ -58,7 +58,7 @@ def ground_under_sensor(cand_z: np.ndarray, training: np.ndarray, line_id: np.nd
 
 def _median(values: np.ndarray, compiled: bool) -> float:
     """``float(np.median(values))`` of finite values (one or more); ``compiled``: sorted in
-    numba (np.median's Python costs ~10 us, ~10x the sort of a hundred values)."""
+    numba (np.median's Python overhead is many times the sort of a hundred values)."""
     median = MEDIAN.run(compiled, values)
     return float(np.median(values)) if math.isnan(median) else median
 
@@ -99,7 +99,7 @@ def _first_line_intercepts_numpy(training, line_id, line_count, intercept):
 
 def _first_line_intercepts_loop(training, line_id, line_count, intercept):
     """:func:`_first_line_intercepts_numpy` as one loop (compiled with numba), the same values
-    in the same order; it replaces ~8 numpy calls of 1-4 us each."""
+    in the same order, without ~8 small numpy calls."""
     m_count, n_count = training.shape
     estimates = np.empty(m_count)
     found = 0

@@ -7,7 +7,7 @@ are the same bit for bit (the twin tests compare them on real frames), so a kern
 ready to be asked for: :func:`run` calls it when it is compiled (or loaded from numba's disk
 cache) for the arguments' types, and otherwise returns the reference's result and has one
 background thread compile it. A new install's first frames take the numpy path while the
-compilations (~16-20 s on 2 cores) run; later processes load them from the cache. The GP step's
+compilations (many seconds) run; later processes load them from the cache. The GP step's
 twins are equal only to round-off: they are compiled before use instead (``warm_up``), so a
 stream's numbers never depend on when a compilation finished. Kernels are cached on disk
 (``cache=True``: ``__pycache__`` next to the module when writable, else numba's user cache
@@ -249,7 +249,7 @@ def _compile_forever() -> None:
 
 def _sort_in_place(values):
     """Sort a 1-D array in place, ascending, for kernels (heapsort, O(n log n)): numba's
-    ``np.sort`` compiles a quicksort in ~1.2 s on a new install, these loops in ~0.2 s.
+    ``np.sort`` compiles a quicksort for seconds on a new install, these loops in a fraction.
     Equal values (-0.0 and +0.0 too) may end up in any order among themselves."""
     n = values.size
     for start in range(n // 2 - 1, -1, -1):

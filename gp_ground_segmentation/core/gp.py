@@ -97,7 +97,7 @@ class GPSolution:
     kernel: Optional[np.ndarray]  # (S, n, n) K at theta (padded slots 0); None when compiled
     gradient: Optional[np.ndarray] = None  # (3,) dJ/dlog(theta) when the solver gave it
     logdets: Optional[np.ndarray] = None  # (S,) log|A| of each segment when compiled
-    pair_terms: tuple = ()  # compiled: (K, q) (S, n, n), see gp_compiled.solve_batched
+    pair_terms: tuple = ()  # compiled: (K, q) (S, n, n), see solve_batched
 
 
 def _pad_numpy(r, z, d, mask, noise_var, has_anchor, anchor_segments, anchor_d,
@@ -286,7 +286,7 @@ def _resolve_into(r, d, z, noise_var, counts, sigma_f, gain, sigma_n, changed, k
                   gradient, k_all, q_all):
     """The loops of :func:`resolve_batched` (compiled), into its outputs (allocated, not
     initialised) with ``work`` (2, n, n). No array is allocated here: numba compiles
-    np.zeros / np.empty for every number of dimensions on first use in a process (~0.9 s of a
+    np.zeros / np.empty for every number of dimensions on first use in a process (most of a
     new install's first frame); outputs are zeroed with element loops instead of np.zeros,
     whose fresh pages would fault on first write."""
     s_count, n = r.shape
@@ -490,6 +490,23 @@ SOLVE = Twin('GP solve', _resolve_numpy, resolve_batched if AVAILABLE else None,
              _solve_examples, exact=False, outputs=_solve_outputs)
 
 
+def slots_to_grid(values, valid, is_anchor, segments, bins, shape, fill=np.nan):
+    """(S, n) values of a batch's slots -> the (M, N) ``shape`` grid of its candidates,
+    ``fill`` where no grid candidate trains (the anchor dropped)."""
+    keep = valid & ~is_anchor
+    out = np.full(shape, fill, dtype=values.dtype)
+    out.reshape(-1)[(segments[:, None] * shape[1] + bins)[keep]] = values[keep]
+    return out
+
+
+def leave_one_out(alpha, a_inv, valid):
+    """(S, n) leave-one-out residuals z_i - mean_{-i} = alpha_i / [A^-1]_ii and predictive stds
+    sqrt(1 / [A^-1]_ii), sensor noise included (R&W eq. 5.12), of a solution's slots; 0 on
+    padding."""
+    diag = np.diagonal(a_inv, axis1=1, axis2=2)
+    return np.where(valid, alpha / diag, 0.0), np.where(valid, np.sqrt(1.0 / diag), 0.0)
+
+
 class FrameGP:
     """Training data of one frame, padded to (S, n) over the segments that have training points.
 
@@ -538,7 +555,6 @@ class FrameGP:
         self.is_anchor = self.valid & (self.bins < 0)
         self.num_points = int(self.counts.sum())
         self._geometry = None  # (q, prefactor) (S, n, n) of the numpy path, made on first use
-        self._grid_slot_index = None  # to_grid's index, made on first use (shared by copies)
         self.compiled_error = None  # why the numba kernel failed, if it did (then numpy)
         self.cholesky_fallbacks = 0  # jittered retries of this object and those it came from
         self.factorisations = 0  # uncached solves of this object (the unit of fitting cost)
@@ -577,19 +593,8 @@ class FrameGP:
 
     def to_grid(self, slot_values, fill) -> np.ndarray:
         """(S, n) values of the training slots -> (M, N) over the grid's bins (anchor dropped)."""
-        slot_values = np.asarray(slot_values)
-        out = np.full(self.shape, fill, dtype=slot_values.dtype)
-        keep, grid_index = self._grid_slots()
-        out.reshape(-1)[grid_index] = slot_values[keep]
-        return out
-
-    def _grid_slots(self):
-        """(keep (S, n) bool: slots of grid candidates, their flat (M * N) grid indices)."""
-        if self._grid_slot_index is None:
-            keep = self.valid & ~self.is_anchor
-            self._grid_slot_index = (keep, (self.segments[:, None] * self.shape[1]
-                                            + self.bins)[keep])
-        return self._grid_slot_index
+        return slots_to_grid(np.asarray(slot_values), self.valid, self.is_anchor, self.segments,
+                             self.bins, self.shape, fill)
 
     # -- core linear algebra ---------------------------------------------------------------
     def kernel(self, theta):
@@ -737,14 +742,12 @@ class FrameGP:
     # -- the leave-one-out view and the prediction ------------------------------------------
     def loo_residuals(self, sol: GPSolution) -> np.ndarray:
         """(S, n) z_i - mean_{-i}: leave-one-out residual alpha_i / [A^-1]_ii (R&W eq. 5.12)."""
-        diag = np.diagonal(sol.a_inv, axis1=1, axis2=2)
-        return np.where(self.valid, sol.alpha / diag, 0.0)
+        return leave_one_out(sol.alpha, sol.a_inv, self.valid)[0]
 
     def loo_std(self, sol: GPSolution) -> np.ndarray:
         """(S, n) leave-one-out predictive std sqrt(1 / [A^-1]_ii) of each slot, sensor noise
         included (R&W eq. 5.12); 0 on padded slots."""
-        diag = np.diagonal(sol.a_inv, axis1=1, axis2=2)
-        return np.where(self.valid, np.sqrt(1.0 / diag), 0.0)
+        return leave_one_out(sol.alpha, sol.a_inv, self.valid)[1]
 
     def predict(self, sol: GPSolution, r_star, d_star, with_std=True, return_kernel=False):
         """Posterior mean (absolute z) and std at r_star, d_star (S, k) of the batch segments

@@ -83,7 +83,7 @@ def _valid_columns(xyz: np.ndarray):
 def _valid_columns_loop(xyz):
     """:func:`_valid_columns` in one pass over the points (compiled with numba): the same
     tests and values. Every point is copied to the next free slot, which advances only past a
-    valid one (no branch: ~25 % less time than a counting and a copying pass)."""
+    valid one (no branch: faster than a counting and a copying pass)."""
     n_points = xyz.shape[0]
     valid = np.empty(n_points, dtype=np.bool_)
     x = np.empty(n_points, dtype=xyz.dtype)
@@ -215,7 +215,7 @@ def _grid_pass(x, y, z, angle, m_count, n_count):
     """:func:`_grid_numpy` in two passes over the points (compiled with numba): the same
     float64 operations in the same order, so the same outputs. It replaces the numpy
     r, segment, ``minimum.at`` / ``bincount`` / ``flatnonzero`` binning, candidate gathers,
-    casts and the rho~ arithmetic (~15 numpy calls of 2-30 us each on a 15k-point scan).
+    casts and the rho~ arithmetic (~15 numpy calls).
     Returns ``ok`` False (outputs unfinished) when some r = sqrt(x^2 + y^2) overflows: the
     caller then runs the reference, which switches to hypot."""
     p_count = x.size

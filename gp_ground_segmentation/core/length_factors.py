@@ -128,6 +128,8 @@ def smooth_length_factors(d: np.ndarray, training: np.ndarray, passes: int,
                           compiled: bool = True) -> np.ndarray:
     """(M, N) ``d`` after ``passes`` rounds of the smoothing (module docstring) over each
     segment's ``training`` candidates; other entries unchanged."""
+    if passes <= 0:  # the paper's d
+        return d
     training = np.ascontiguousarray(training, dtype=bool)
     return _smoothed(d, np.where(training, d, 1.0), training, passes, compiled)
 
@@ -324,7 +326,7 @@ USABLE = Twin('usable bins and slope terms', _usable_bins_numpy, _usable_bins_co
 RING = Twin('ring deviations', ring_log_deviation, kernel(_ring_deviation_loop),
             lambda _dtype: [(np.ones(2), np.ones(2), 0.1)])
 EQ12 = Twin('eq. 12', _eq12_numpy, _eq12_compiled,
-            lambda _dtype: [(np.ones((2, 2)), np.ones(2), *_grids(bool, bool, bool), False,
+            lambda _dtype: [(np.ones((2, 2)), np.ones(4), *_grids(bool, bool, bool), False,
                              1.0, 0.05, 2.0)])
 SMOOTH = Twin('length-factor smoothing', _smooth_numpy, kernel(_smooth_loop),
               lambda _dtype: [(*_grids(float, bool), 1)])

@@ -159,7 +159,7 @@ def _lines_loop(cand_r, cand_z, density, variance_ratio, max_slope, max_distance
     """:func:`_lines_numpy` as scalar loops (compiled with numba): the same values in the same
     order (the line sums accumulate in ``np.bincount``'s order, row by row), so the same
     outputs. It replaces the numpy set-up (``relative_to_first``, the moments array) and the
-    final fit (bincounts, ``minimum.at``, gathers): ~30 numpy calls of 1-10 us each."""
+    final fit (bincounts, ``minimum.at``, gathers): ~30 small numpy calls."""
     m_count, n_count = cand_r.shape
     present = np.empty((m_count, n_count), dtype=np.bool_)
     rr = np.empty((m_count, n_count))
@@ -382,7 +382,7 @@ LINES = Twin('line growing', _lines_numpy, _lines_compiled, _lines_examples)
 
 def with_slope(lines: LineSegments, slope: np.ndarray) -> LineSegments:
     """``dataclasses.replace(lines, slope=slope)`` (a new object sharing the other fields)
-    without its field-by-field ``__init__`` (~4 us)."""
+    without its field-by-field ``__init__``."""
     out = copy.copy(lines)
     out.slope = slope
     return out

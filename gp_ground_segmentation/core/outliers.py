@@ -33,6 +33,7 @@ import math
 import numpy as np
 
 from .compiled import AVAILABLE, Stage, Twin, kernel
+from .gp import leave_one_out, slots_to_grid
 
 OUTLIER_NOISE_VAR = 1e4  # m^2: a rejected candidate's noise variance (std 100 m)
 
@@ -60,30 +61,14 @@ def reject_outliers(gp, sol, outliers: np.ndarray, params):
     return gp, gp.solve(sol.theta), outliers
 
 
-def _slots_to_grid(values, valid, is_anchor, segments, bins, shape):
-    """(S, n) slot values -> (M, N) ``shape`` grid, NaN where no grid candidate trains (the
-    anchor dropped): ``FrameGP.to_grid``."""
-    keep = valid & ~is_anchor
-    out = np.full(shape, np.nan, dtype=values.dtype)
-    out.reshape(-1)[(segments[:, None] * shape[1] + bins)[keep]] = values[keep]
-    return out
-
-
-def _leave_one_out(alpha, a_inv, valid):
-    """(S, n) leave-one-out residuals and stds of the slots, 0 on padding
-    (``FrameGP.loo_residuals`` and ``loo_std``)."""
-    diag = np.diagonal(a_inv, axis1=1, axis2=2)
-    return np.where(valid, alpha / diag, 0.0), np.where(valid, np.sqrt(1.0 / diag), 0.0)
-
-
 def _new_outliers_numpy(alpha, a_inv, valid, is_anchor, segments, bins, outliers, above_m,
                         below_m, worst_above_only, std_factor):
     """The numpy reference of :func:`_new_outliers_loop`."""
-    residual, std = _leave_one_out(alpha, a_inv, valid)
+    residual, std = leave_one_out(alpha, a_inv, valid)
     slots = (valid, is_anchor, segments, bins, outliers.shape)
     return ~outliers & outlier_candidates(
-        _slots_to_grid(residual, *slots), above_m=above_m, below_m=below_m,
-        worst_above_only=worst_above_only, loo_std=_slots_to_grid(std, *slots),
+        slots_to_grid(residual, *slots), above_m=above_m, below_m=below_m,
+        worst_above_only=worst_above_only, loo_std=slots_to_grid(std, *slots),
         std_factor=std_factor)
 
 
@@ -148,10 +133,10 @@ def _not_wide_terrain_numpy(new, alpha, a_inv, valid, is_anchor, segments, bins,
                             tolerance_m, max_slope):
     """The numpy reference of :func:`_not_wide_terrain_loop`."""
     slots = (valid, is_anchor, segments, bins, new.shape)
-    residual = _leave_one_out(alpha, a_inv, valid)[0]
-    above = new & (_slots_to_grid(residual, *slots) > 0)
+    residual = leave_one_out(alpha, a_inv, valid)[0]
+    above = new & (slots_to_grid(residual, *slots) > 0)
     return new & ~wide_terrain_candidates(
-        above, _slots_to_grid(z, *slots), tolerance_m, r=_slots_to_grid(r, *slots),
+        above, slots_to_grid(z, *slots), tolerance_m, r=slots_to_grid(r, *slots),
         max_slope=max_slope, compiled=False)
 
 
@@ -203,15 +188,13 @@ def wide_terrain_candidates(mask: np.ndarray, z: np.ndarray, tolerance_m: float,
     segment: its neighbours' candidates at that range lie at its height. Both sides are
     required, so that an object two segments wide, or one beside a raised neighbour, is not
     called terrain. The step test looks into the neighbouring segments too: points above the
-    ground in rings all around the sensor (test_malformed's every-5th-point denormal z, 1.73 m
-    up) are continued by every segment and often have no candidate of their own segment in the
-    bins beside them, but the segments beside them do, on the ground (12 of 780 such points
-    became ground when only the own segment's bins were looked at). The slope test keeps a wall
-    seen over an occlusion shadow from being terrain: in a room seen from 0.3 m, the lowest
-    visible part of the far wall (0.9 m up, the floor before it hidden behind furniture) is
-    continued by the neighbouring segments like terrain, but it rises 0.65 m per metre from the
-    floor before the shadow, where far ground on a hill seen by a 16-beam sensor rises gently
-    over the gap (benchmarks/RESULTS.md, "The wide-terrain rule on by default").
+    ground in rings all around the sensor are continued by every segment and often have no
+    candidate of their own segment in the bins beside them, but the segments beside them do,
+    on the ground. The slope test keeps a wall seen over an occlusion shadow from being
+    terrain: the lowest visible part of a far wall whose floor is hidden behind furniture is
+    continued by the neighbouring segments like terrain, but it rises steeply from the floor
+    before the shadow, where far ground on a hill seen by a 16-beam sensor rises gently over
+    the gap.
 
     ``compiled``: one numba pass over the asked-for candidates when numba imports (else the
     numpy reference, whole-grid shifts); both give the same mask.

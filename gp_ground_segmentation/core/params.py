@@ -68,15 +68,15 @@ RETIRED_OFF_VALUES = {  # name: (the value that turned a rule off, the switch th
 
 
 def retired_problem(name: str, value=None) -> str | None:
-    """The one-line error for a key or value of an earlier version (``RETIRED_KEYS``,
-    ``RETIRED_OFF_VALUES``), naming what replaced it; None for a current one."""
+    """What is wrong with key ``name`` (and ``value``) of an earlier version (``RETIRED_KEYS``,
+    ``RETIRED_OFF_VALUES``), naming what replaced it, in one line; None for a current one."""
     if name in RETIRED_KEYS:
-        return f'{name}: {RETIRED_KEYS[name]}'
+        return RETIRED_KEYS[name]
     if name in RETIRED_OFF_VALUES and kind_of(value) in ('int', 'float'):
         off, switch = RETIRED_OFF_VALUES[name]
         if value == off:
-            return (f'{name}: {value!r} no longer turns the rule off; set {switch}: false '
-                    f'instead (and leave {name} in its range)')
+            return (f'{value!r} no longer turns the rule off; set {switch}: false instead '
+                    f'(and leave {name} in its range)')
     return None
 
 
@@ -315,7 +315,7 @@ class SegmenterParams:
         for name in kwargs:
             problem = retired_problem(name)
             if problem:
-                raise TypeError(problem)
+                raise TypeError(f'{name}: {problem}')
         return super().__new__(cls)
 
     def __post_init__(self):
@@ -338,7 +338,7 @@ class SegmenterParams:
             value = getattr(self, f.name)
             retired = retired_problem(f.name, value)
             if retired:
-                raise ValueError(retired)
+                raise ValueError(f'{f.name}: {retired}')
             problem = value_problem(value, type(f.default).__name__, f.metadata.get('min'),
                                     f.metadata.get('max'), int_as_float=True)
             if problem:

@@ -2,7 +2,7 @@
 """Stage ``predict`` [paper, eqs. 5 and 13]: the GP posterior of the ground at the bin edges.
 
 The posterior mean (and std) of every segment's ground height is evaluated at its N + 1 bin
-edges, not at every point (a dense N x P kernel would cost ~100x more); the ``labels`` stage
+edges, not at every point (a dense N x P kernel would cost far more); the ``labels`` stage
 interpolates between them. Segments without a training point keep the prior: the ground under
 the vehicle (or FrameGP's mean) with the prior std sigma_f.
 

@@ -293,7 +293,7 @@ def _structure_hits_loop(az_col, ring_col, z_col, az_cand, ring_cand, z_cand, n_
     The table holds, per azimuth row, only the rings between that row's nearest and farthest
     column point (rows one after the other, as in a sparse row matrix) instead of the dense
     (n_az + 2) x ``width`` table: filling that with -inf every frame cost more than the
-    look-ups (1.1 M cells on a KITTI scan, about 12 times the rings in use). A cell outside its
+    look-ups (the dense table has many times the cells in use). A cell outside its
     row's range holds no column point, -inf in the reference; the highest of the nine cells is
     the same value, so the mask is too. ``width`` is not needed.
     """
@@ -352,20 +352,25 @@ if _structure_hits_compiled is not None:  # these passes call the compiled ones 
     _cells_hits_compiled = kernel(_cells_hits_loop)
 
 
+# the examples' cells: 1 degree azimuth, 0.5 m radial (as _mask_in_cells makes the constants)
+_EXAMPLE_CELL_RAD, _EXAMPLE_CELL_M = float(np.radians(1.0)), 0.5
+_EXAMPLE_N_AZ, _EXAMPLE_R_SQUARE = 360, _EXAMPLE_CELL_M / _EXAMPLE_CELL_RAD
+
+
 def _select_examples(dtype):
-    """A ground point with a column point right above it (reaches every compiled part), with
-    the cells' constants as :func:`_mask_in_cells` makes them."""
+    """A ground point with a column point right above it (reaches every compiled part)."""
     z = np.array([0.0, 0.5], dtype)
     scalar = np.dtype(dtype).type
     return [(np.zeros(2), z, np.zeros(2, dtype), np.array([True, False]), np.ones(2, dtype),
-             scalar(0.2), scalar(0.7), scalar(100.0), 4, 0.5, 10.0, 1.0, 1.0)]
+             scalar(0.2), scalar(0.7), scalar(100.0), _EXAMPLE_N_AZ,
+             _EXAMPLE_N_AZ / (2.0 * np.pi), 1.0 / _EXAMPLE_CELL_M, _EXAMPLE_R_SQUARE,
+             1.0 / _EXAMPLE_R_SQUARE)]
 
 
 def _hits_examples(dtype):
-    select = _select_examples(dtype)[0]
-    cells = _select_cells_numpy(*select)
-    return [(2, *cells[:-1], np.log(np.ones(cells[-1].size)), 1.0, 1.0, 4,
-             np.dtype(dtype).type(0.05))]
+    cells = _select_cells_numpy(*_select_examples(dtype)[0])
+    return [(2, *cells[:-1], np.log(cells[-1]), _EXAMPLE_R_SQUARE / _EXAMPLE_CELL_M,
+             1.0 / _EXAMPLE_CELL_RAD, _EXAMPLE_N_AZ, np.dtype(dtype).type(0.05))]
 
 
 SELECT_CELLS = Twin('structure selection and cells', _select_cells_numpy,

@@ -20,16 +20,14 @@ quadrature: the GP's posterior std of the segment's ground, sqrt(k** - k*^T A^-1
 (``gp_std``), and the spread of the ground across the segment (``across_segment_std``): the
 surface is one z(r) per segment, so where the ground slopes across the beams a point off the
 segment's centre line lies above or below it, by an amount read from the neighbouring segments.
-The GP part alone covered 81 % of the true ground within +-2 z_std on a 15 degree incline and
-85-89 % in valleys (asked: 90-99 %; 86 % and 92-93 % before the length factors were smoothed),
-98 % and 97-99 % with both; 97-99.5 % on every synthetic scene (benchmarks/RESULTS.md,
-"Ground surface").
+The GP part alone covers too little of the true ground within +-2 z_std on inclines and in
+valleys; with both parts the coverage is as asked (benchmarks/RESULTS.md, "Ground surface").
 
 Calibration choice, the ground offset: the GP is trained on the *lowest* point of every bin,
 which lies below the ground by the lower tail of the points' scatter. That offset is not one
 number: it grows where rays hit the terrain steeply (ramps facing the sensor, hills) and where a
-segment spans a cross slope (its lowest points sit on the downhill side), about 0.5-3 cm on the
-synthetic scans and 2-3 cm on KITTI (benchmarks/RESULTS.md, "Ground surface"). The labels keep
+segment spans a cross slope (its lowest points sit on the downhill side): a few cm
+(benchmarks/RESULTS.md, "Ground surface"). The labels keep
 the GP mean (``SegmentationResult.ground_height``; their threshold was chosen with it), but the
 surface is meant to be *the* ground, so its z is the GP mean plus ``ground_offset``: at every bin
 edge, the mean height above the labels' z_hat of the points labelled ground in the two bins
@@ -37,12 +35,11 @@ beside it (points on the ground scatter symmetrically about it), each height cli
 frame's median +- 3 sigma_n so that a few obstacle points called ground cannot drag it; edges
 with no such point get the frame's median. That median is taken over an evenly strided sample of
 at most 8192 of the residuals (all of them in a smaller frame): it only centres a band 6 sigma_n
-wide, and the sample's median is within a few millimetres of the full one (half a millisecond
-less on a 124k-point frame). No truth and no tuned constant is involved (3 sigma
-is the usual Gaussian outlier bound).
+wide, and the sample's median is within a few millimetres of the full one at a fraction of the
+cost. No truth and no tuned constant is involved (3 sigma is the usual Gaussian outlier bound).
 
 Everything the labels do not need is computed on first access only: x, y, azimuth, and z_std when
-the threshold did not use the std (``ground_threshold_std_factor`` = 0, the default), and the
+the threshold did not use the std (``use_std_threshold`` false, the default), and the
 ground offset.
 """
 
@@ -240,8 +237,7 @@ class GroundSurface:
 
         ``compiled`` (default: the constructor's): one numba pass from the grid, the GP mean,
         the ground offset and the GP std straight to the float32 rows (the node's surface
-        cloud: 0.17 instead of 0.41 ms on a 124k-point KITTI frame, median, offsets and std
-        computed before), without the x, y, z, z_std arrays and their temporaries; the same
+        cloud), without the x, y, z, z_std arrays and their temporaries; the same
         operations in the same order as the numpy reference, so the same values, bit for
         bit."""
         use_compiled = self._compiled if compiled is None else bool(compiled)
@@ -457,8 +453,7 @@ def ground_offsets(z, z_hat, ground, segment, bin_index, num_segments: int, num_
 
     ``compiled``: one numba kernel (when numba imports) gathers the residuals, selects their
     median and sums them per bin, instead of the numpy reference's gathers, ``np.median`` and
-    bincounts (0.3 vs 1.3 ms on a 124k-point KITTI scan; 0.6 ms with the median of every
-    residual); both add the same numbers in the same order, so the outputs are equal.
+    bincounts; both add the same numbers in the same order, so the outputs are equal.
     """
     m, n = int(num_segments), int(num_bins)
     args = (np.asarray(z), np.asarray(z_hat), np.asarray(ground, dtype=bool),
@@ -541,7 +536,7 @@ def _median_of(values):
     buckets seen on the way, or in the last sort.
 
     Plain loops for min, max and the last sort (``compiled.sort_in_place``): numba's ``np.sort``,
-    ``.min()`` and ``.max()`` cost ~1.5 s of compilation on a new install.
+    ``.min()`` and ``.max()`` cost a new install seconds of compilation.
     """
     size = values.size
     rank = size // 2  # of the upper middle value, within the candidates
@@ -645,7 +640,9 @@ def _offsets_examples(dtype):
 
 def _points_examples(_dtype):
     segments, edges = np.ones(2), np.zeros((2, 3))
-    return [(np.zeros(2), segments, edges, edges, edges, np.ones(2, bool), segments, segments,
+    centres = np.ones(2)
+    centres.flags.writeable = False  # the segment centres' cosines are shared, read-only
+    return [(np.zeros(2), segments, edges, edges, edges, np.ones(2, bool), centres, centres,
              np.eye(3), np.zeros(3), False, True)]
 
 

@@ -21,7 +21,7 @@ import re
 import textwrap
 from pathlib import Path
 
-from ..core.params import SegmenterParams, describe_params, value_problem
+from ..core.params import SegmenterParams, describe_params, retired_problem, value_problem
 
 __all__ = ['NODE_NAME', 'NODE_PARAMS', 'PARAMS_FILE_KEY', 'ParameterConfigError',
            'all_param_specs', 'check_param_value', 'describe_node_params', 'is_ros_builtin',
@@ -138,6 +138,9 @@ def is_ros_builtin(name: str) -> bool:
 def check_param_value(name: str, value, specs: dict | None = None) -> None:
     """Raise ParameterConfigError unless ``value`` has the declared type and lies in range."""
     specs = all_param_specs() if specs is None else specs
+    retired = retired_problem(name, value)
+    if retired:  # a key or value of an earlier version: name what replaced it
+        raise ParameterConfigError(f"parameter '{name}': {retired}")
     if name not in specs:
         close = difflib.get_close_matches(name, list(specs), n=1)
         hint = f"did you mean '{close[0]}'? " if close else ''

@@ -40,7 +40,7 @@ from rosbags.typesys import Stores, get_typestore
 from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import Header
 
-from ..core import compiled, gp_compiled
+from ..core import compiled, stages
 from ..core.params import SegmenterParams
 from ..core.segmenter import GroundSegmenter
 from ..ros import pipeline
@@ -553,7 +553,7 @@ def warm_up(log=None, segmenter=None) -> None:
     it), then ``segmenter.warm_up()`` (every compiled stage a frame needs) when a segmenter is
     given, then the output clouds' compiled pass (``pipeline.warm_up``)."""
     try:
-        gp_compiled.warm_up()
+        stages.compile_round_off(background_too=True)
         if segmenter is not None:
             segmenter.warm_up()
     except Exception as exc:  # noqa: BLE001 - the numpy path still works

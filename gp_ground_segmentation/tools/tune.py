@@ -74,6 +74,8 @@ class SearchRange:
     why: str
 
     def suggest(self, trial):
+        if isinstance(self.low, bool):  # a use_* switch: both values
+            return trial.suggest_categorical(self.name, [self.low, self.high])
         if isinstance(self.low, int) and isinstance(self.step, int):
             return trial.suggest_int(self.name, self.low, self.high, step=self.step)
         # rounded so 0.1 + 2 * 0.1 is written and evaluated as 0.3, not 0.30000000000000004
@@ -86,8 +88,10 @@ SEARCH_SPACE = (
                 'height above the GP ground that still counts as ground; curbs are ~0.1-0.2 m'),
     SearchRange('max_threshold_m', 0.15, 0.60, 0.01,
                 'cap of the total threshold; above ~0.6 m low obstacles vanish into the ground'),
-    SearchRange('ground_threshold_std_factor', 0.0, 2.0, 0.1,
+    SearchRange('use_std_threshold', False, True, None,
                 'widen the threshold where the GP is unsure (far, sparse bins)'),
+    SearchRange('std_threshold_factor', 0.1, 2.0, 0.1,
+                'how much, in GP stds (with use_std_threshold)'),
     SearchRange('line_max_slope', 0.3, 1.2, 0.05,
                 'steepest line still taken as ground (dz/dr); ramps of 10-20 deg are 0.18-0.36'),
     SearchRange('line_max_distance_m', 0.05, 0.40, 0.01,
@@ -102,8 +106,10 @@ SEARCH_SPACE = (
                 'start of the GP noise std (first frame); must be >= sigma_n_min_m'),
     SearchRange('num_bins', 16, 36, 4,
                 'radial bins per segment: resolution of the ground profile vs cost'),
-    SearchRange('length_factor_smoothing_passes', 0, 10, 1,
-                'smoothing of the length scales along a segment; 0 = the paper\'s raw d_i'),
+    SearchRange('use_length_factor_smoothing', False, True, None,
+                'smoothing of the length scales along a segment; off = the paper\'s raw d_i'),
+    SearchRange('length_factor_smoothing_passes', 1, 10, 1,
+                'how many passes (with use_length_factor_smoothing)'),
 )
 
 
@@ -119,8 +125,11 @@ def render_search_space_table() -> str:
            '|---|---|---|---|---|']
     for r in SEARCH_SPACE:
         spec = specs[r.name]
-        out.append(f"| `{r.name}` | `{spec['default']}` | {r.low} .. {r.high} ({r.step}) | "
-                   f"{spec['min']} .. {spec['max']} | {r.why} |")
+        if isinstance(r.low, bool):
+            searched, valid = 'false, true', 'bool'
+        else:
+            searched, valid = f'{r.low} .. {r.high} ({r.step})', f"{spec['min']} .. {spec['max']}"
+        out.append(f"| `{r.name}` | `{spec['default']}` | {searched} | {valid} | {r.why} |")
     return '\n'.join(out) + '\n'
 
 

@@ -401,11 +401,11 @@ def _add_gradient(alpha, a_inv, k, q, m, g_sf, g_gain, g_sn):
     return g_sf, g_gain, g_sn
 
 
-if AVAILABLE:  # the callees before their callers
-    _zero_solution = kernel(_zero_solution)
-    _pair_terms = kernel(_pair_terms)
-    _factorise = kernel(_factorise)
-    _add_gradient = kernel(_add_gradient)
+if AVAILABLE:  # the callees before their callers, inlined into them (numba IR: no call)
+    _zero_solution = kernel(_zero_solution, inline='always')
+    _pair_terms = kernel(_pair_terms, inline='always')
+    _factorise = kernel(_factorise, inline='always')
+    _add_gradient = kernel(_add_gradient, inline='always')
     _resolve_into = kernel(_resolve_into)
 
 

@@ -111,8 +111,8 @@ def _label_loop(mean, threshold, point_segment, point_bin, frac, z, row_length):
 
 _is_ground = is_ground
 _label_compiled = None
-if AVAILABLE:  # the pass calls the compiled label rule
-    _is_ground = kernel(is_ground)
+if AVAILABLE:  # the pass calls the compiled label rule, inlined per point
+    _is_ground = kernel(is_ground, inline='always')
     _label_compiled = kernel(_label_loop)
 
 

@@ -310,9 +310,9 @@ def _smooth_loop(log_d, training, passes):
 
 
 _usable_bins_compiled = _eq12_compiled = None
-if AVAILABLE:  # these passes call the compiled slope term and eq. 12
-    _slope_term = kernel(slope_term)
-    _length_factor = kernel(length_factor)
+if AVAILABLE:  # these passes call the compiled slope term and eq. 12, inlined per bin
+    _slope_term = kernel(slope_term, inline='always')
+    _length_factor = kernel(length_factor, inline='always')
     _usable_bins_compiled = kernel(_usable_bins_loop)
     _eq12_compiled = kernel(_eq12_loop)
 

@@ -39,4 +39,5 @@ def paciorek_kernel(r1, l1, r2, l2, sigma_f):
     return paciorek(r1 - r2, l1, l2, sigma_f * sigma_f, 1.0)[0]
 
 
-paciorek_compiled = kernel(paciorek) or paciorek  # the numpy function without numba
+# inlined into its compiled callers (numba IR: no call per pair of points)
+paciorek_compiled = kernel(paciorek, inline='always') or paciorek  # numpy's without numba

@@ -23,6 +23,7 @@ from common import (REPO, command_line, load_labeled_kitti, machine_markdown, ma
                     real_frames, update_results_section)
 
 from gp_ground_segmentation import GroundSegmenter  # noqa: E402 (path via common)
+from gp_ground_segmentation.core.labels import is_ground  # noqa: E402
 from gp_ground_segmentation.core.structure import structure_feet  # noqa: E402
 from gp_ground_segmentation.tools.evaluation import truth_metrics  # noqa: E402
 
@@ -103,7 +104,7 @@ def main(argv=None) -> int:
         direct, direct_ms = direct_heights(result)
         diff = np.abs(direct - interp)
         ground_direct = with_structure_test(seg, frame.points, d.valid_index, direct,
-                                            z - direct <= d.threshold)
+                                            is_ground(z, direct, d.threshold))
         ground_interp = result.ground_mask[d.valid_index]
         changed = int(np.count_nonzero(ground_direct != ground_interp))
         f1 = '-'

@@ -99,12 +99,11 @@ def outlier_candidates(loo_residual: np.ndarray, *, above_m: float, below_m: flo
 def _new_outliers_loop(alpha, a_inv, valid, is_anchor, segments, bins, outliers, above_m,
                        below_m, worst_above_only, std_factor):
     """(M, N) candidates not yet in ``outliers`` whose leave-one-out residual is an outlier, in
-    one pass over the GP's slots (compiled with numba). Replaces, with the same values,
-    ``~outliers & additions.outlier_candidates(gp.to_grid(gp.loo_residuals(sol), nan), ...)``
-    (the reference in ``_reject_outliers``): residual alpha_i / [A^-1]_ii of each grid
-    candidate's slot, the same comparisons (the limit above is also ``std_factor`` times the
-    leave-one-out std sqrt(1 / [A^-1]_ii)), and with ``worst_above_only`` the row's highest
-    residual."""
+    one pass over the GP's slots (compiled with numba): :func:`_new_outliers_numpy` (the
+    slots mapped to the grid, then :func:`outlier_candidates`) with the same values: residual
+    alpha_i / [A^-1]_ii of each grid candidate's slot, the same comparisons (the limit above
+    is also ``std_factor`` times the leave-one-out std sqrt(1 / [A^-1]_ii)), and with
+    ``worst_above_only`` the row's highest residual."""
     new = np.zeros(outliers.shape, dtype=np.bool_)
     n_slots = valid.shape[1]
     for s in range(segments.size):
@@ -142,11 +141,11 @@ def _not_wide_terrain_numpy(new, alpha, a_inv, valid, is_anchor, segments, bins,
 
 def _not_wide_terrain_loop(new, alpha, a_inv, valid, is_anchor, segments, bins, r, z,
                            tolerance_m, max_slope):
-    """``new`` (M, N) without the candidates that ``additions.wide_terrain_candidates`` calls
+    """``new`` (M, N) without the candidates that :func:`wide_terrain_candidates` calls
     terrain among those with a leave-one-out residual above 0 (compiled with numba): the
-    grids of residual, z and r that the reference (in ``_reject_outliers``) makes with
-    ``FrameGP.to_grid`` (NaN where no grid candidate trains), filled from the GP's slots in
-    one pass, and the compiled wide-terrain pass on them; the same values, so the same mask.
+    grids of residual, z and r that the reference (:func:`_not_wide_terrain_numpy`) makes
+    with :func:`slots_to_grid` (NaN where no grid candidate trains), filled from the GP's slots
+    in one pass, and the compiled wide-terrain pass on them; the same values, so the mask.
     """
     m_count, n_bins = new.shape
     above = np.zeros((m_count, n_bins), dtype=np.bool_)

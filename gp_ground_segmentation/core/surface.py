@@ -394,7 +394,7 @@ def _points_loop(r_min, width, mean, offset, gp_std, supported, cos_c, sin_c, ro
                  translation, rotated, supported_only):
     """:meth:`GroundSurface.points` in one pass (compiled with numba): per prediction point the
     reference's x, y, z (r, the GP mean plus the ground offset, the pose), z_std (the GP std and
-    the across-segment spread from the uncapped cross-segment rise, additions._rise_loop) in
+    the across-segment spread from the uncapped cross-segment rise, labels._rise_loop) in
     float64, the same operations in the same order, then the float32 row, kept
     when finite. ``cos_c``, ``sin_c``: (M,) numpy's cosine and sine of the segment centres;
     ``rotation``, ``translation``: the pose's R and t, R used when ``rotated``."""

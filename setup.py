@@ -33,7 +33,7 @@ setup(
         'numpy',
         'scipy',
         'threadpoolctl',  # segmenter.py caps BLAS threads per call
-        'numba',  # the compiled GP step (gp_compiled.py), each segment at its own size
+        'numba',  # the compiled stages (core/compiled.py), the GP each segment at its own size
         'PyYAML',  # config.load_params_file
         'rosbags',
         'ros-jazzy-rclpy[fastrtps]',

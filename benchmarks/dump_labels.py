@@ -35,7 +35,10 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.append(str(ROOT))  # scenes/ (appended: PYTHONPATH's package tree wins)
-DATA = Path('/work/shared/data')
+try:  # the one data-path finder; a tree from before it (on PYTHONPATH) has none
+    from scenes.real_data import DATA_DIR as DATA
+except ImportError:
+    DATA = ROOT.parent / 'shared' / 'data'
 
 # name -> spellings of one parameter set, newest first: the first whose keys are all fields of
 # the SegmenterParams that runs is used

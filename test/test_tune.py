@@ -33,17 +33,23 @@ def test_search_space_is_a_narrower_documented_subset():
     defaults = SegmenterParams()
     names = [r.name for r in tune.SEARCH_SPACE]
     assert len(set(names)) == len(names)
+    searched_defaults = tune.search_space_defaults()
     for r in tune.SEARCH_SPACE:
         spec = specs[r.name]
         assert type(r.low) is type(spec['default']) and r.why
-        if isinstance(r.low, bool):  # a use_* switch: both values are searched
-            assert (r.low, r.high) == (False, True)
-            continue
-        assert spec['min'] <= r.low < r.high <= spec['max']
+        if r.switch:  # the low end stands for the rule off: below the parameter's range
+            assert isinstance(getattr(defaults, r.switch), bool)
+            assert r.low < spec['min'] <= r.low + r.step
+            assert tune.as_params({r.name: r.low}) == {r.switch: False}
+        else:
+            assert spec['min'] <= r.low
+        assert r.low < r.high <= spec['max']
         assert (r.low, r.high) != (spec['min'], spec['max'])
-        steps = (getattr(defaults, r.name) - r.low) / r.step
-        assert r.low <= getattr(defaults, r.name) <= r.high
+        default = searched_defaults[r.name]
+        steps = (default - r.low) / r.step
+        assert r.low <= default <= r.high
         assert abs(steps - round(steps)) < 1e-9, r.name  # the defaults are a grid point
+    assert SegmenterParams().replace(**tune.as_params(searched_defaults)) == defaults
 
 
 def test_readme_has_the_generated_search_space_table():
@@ -126,9 +132,10 @@ def test_tune_reports_cross_validated_f1_and_writes_changed_keys(tuned):
     # the shipped file's '/**' section: the node in a namespace reads it too
     assert "'/**':" in text.splitlines()
     assert load_params_file(out, namespace='/seg')[0] == seg
-    defaults = tune.search_space_defaults()
-    for name, value in doc['tuned'].items():
-        assert getattr(seg, name) == value and value != defaults[name]
+    from gp_ground_segmentation.core.params import SegmenterParams
+    defaults = SegmenterParams()
+    for name, value in doc['tuned'].items():  # SegmenterParams fields, as written
+        assert getattr(seg, name) == value and value != getattr(defaults, name)
     keys = [ln.split(':')[0].strip() for ln in text.splitlines() if ln.startswith('    ')]
     assert sorted(keys) == sorted(doc['tuned'])
 

@@ -65,17 +65,18 @@ DEFAULT_SCENE_RULE = r'^(.*?)[_-]?\d+$'
 
 @dataclass(frozen=True)
 class SearchRange:
-    """One searched parameter: inclusive range, grid step and why this range."""
+    """One searched parameter: inclusive range, grid step and why this range. ``switch``: the
+    use_* field of the parameter's rule, which the range's low end stands for: a searched
+    ``low`` is the rule off (``as_params``), any other value is the rule on with that value."""
 
     name: str
     low: float
     high: float
     step: float
     why: str
+    switch: Optional[str] = None
 
     def suggest(self, trial):
-        if isinstance(self.low, bool):  # a use_* switch: both values
-            return trial.suggest_categorical(self.name, [self.low, self.high])
         if isinstance(self.low, int) and isinstance(self.step, int):
             return trial.suggest_int(self.name, self.low, self.high, step=self.step)
         # rounded so 0.1 + 2 * 0.1 is written and evaluated as 0.3, not 0.30000000000000004
@@ -88,10 +89,9 @@ SEARCH_SPACE = (
                 'height above the GP ground that still counts as ground; curbs are ~0.1-0.2 m'),
     SearchRange('max_threshold_m', 0.15, 0.60, 0.01,
                 'cap of the total threshold; above ~0.6 m low obstacles vanish into the ground'),
-    SearchRange('use_std_threshold', False, True, None,
-                'widen the threshold where the GP is unsure (far, sparse bins)'),
-    SearchRange('std_threshold_factor', 0.1, 2.0, 0.1,
-                'how much, in GP stds (with use_std_threshold)'),
+    SearchRange('std_threshold_factor', 0.0, 2.0, 0.1,
+                'widen the threshold where the GP is unsure (far, sparse bins)',
+                switch='use_std_threshold'),
     SearchRange('line_max_slope', 0.3, 1.2, 0.05,
                 'steepest line still taken as ground (dz/dr); ramps of 10-20 deg are 0.18-0.36'),
     SearchRange('line_max_distance_m', 0.05, 0.40, 0.01,
@@ -106,16 +106,36 @@ SEARCH_SPACE = (
                 'start of the GP noise std (first frame); must be >= sigma_n_min_m'),
     SearchRange('num_bins', 16, 36, 4,
                 'radial bins per segment: resolution of the ground profile vs cost'),
-    SearchRange('use_length_factor_smoothing', False, True, None,
-                'smoothing of the length scales along a segment; off = the paper\'s raw d_i'),
-    SearchRange('length_factor_smoothing_passes', 1, 10, 1,
-                'how many passes (with use_length_factor_smoothing)'),
+    SearchRange('length_factor_smoothing_passes', 0, 10, 1,
+                'smoothing of the length scales along a segment; 0 = the paper\'s raw d_i',
+                switch='use_length_factor_smoothing'),
 )
 
 
 def search_space_defaults() -> dict:
+    """The defaults as searched values (a switched rule that is off: its range's low end)."""
     defaults = SegmenterParams()
-    return {r.name: getattr(defaults, r.name) for r in SEARCH_SPACE}
+    return {r.name: (r.low if r.switch and not getattr(defaults, r.switch)
+                     else getattr(defaults, r.name)) for r in SEARCH_SPACE}
+
+
+def as_params(values: dict) -> dict:
+    """Searched ``values`` as SegmenterParams fields: a switched parameter at its range's low
+    end is its rule off (``switch`` false), any other value the rule on with that value (the
+    switch set only where its default is off)."""
+    defaults, ranges = SegmenterParams(), {r.name: r for r in SEARCH_SPACE}
+    out = {}
+    for name, value in values.items():
+        r = ranges.get(name)
+        if r is None or r.switch is None:
+            out[name] = value
+        elif value <= r.low:
+            out[r.switch] = False
+        else:
+            out[name] = value
+            if not getattr(defaults, r.switch):
+                out[r.switch] = True
+    return out
 
 
 def render_search_space_table() -> str:
@@ -123,13 +143,14 @@ def render_search_space_table() -> str:
     specs = {row['name']: row for row in describe_params()}
     out = ['| parameter | default | search range (step) | validity range | why this range |',
            '|---|---|---|---|---|']
+    defaults = search_space_defaults()
     for r in SEARCH_SPACE:
         spec = specs[r.name]
-        if isinstance(r.low, bool):
-            searched, valid = 'false, true', 'bool'
-        else:
-            searched, valid = f'{r.low} .. {r.high} ({r.step})', f"{spec['min']} .. {spec['max']}"
-        out.append(f"| `{r.name}` | `{spec['default']}` | {searched} | {valid} | {r.why} |")
+        searched = f'{r.low} .. {r.high} ({r.step})'
+        if r.switch:
+            searched += f'; {r.low} = `{r.switch}` false'
+        out.append(f"| `{r.name}` | `{defaults[r.name]}` | {searched} | "
+                   f"{spec['min']} .. {spec['max']} | {r.why} |")
     return '\n'.join(out) + '\n'
 
 
@@ -165,7 +186,7 @@ def load_frame(frame: LabelledFrame) -> tuple:
 
 def evaluate(values: dict, frames: Sequence[LabelledFrame]) -> list:
     """Per-frame confusion counts {tp, fp, fn, tn} of the defaults with ``values`` applied."""
-    params = SegmenterParams().replace(**values)
+    params = SegmenterParams().replace(**as_params(values))
     counts = []
     for frame in frames:
         xyz, truth, evaluated = load_frame(frame)
@@ -219,7 +240,7 @@ def run_study(engine, frames: Sequence[LabelledFrame], trials: int, seed: int,
             values = {r.name: r.suggest(trial) for r in SEARCH_SPACE}
             trial.set_user_attr('values', values)
             try:
-                SegmenterParams().replace(**values)
+                SegmenterParams().replace(**as_params(values))
             except ValueError as err:  # a cross-field rule: not a point of the search space
                 trial.set_user_attr('pruned_because', str(err))
                 study.tell(trial, state=TrialState.PRUNED)
@@ -260,7 +281,7 @@ class TuneReport:
     seed: int
     engine: str
     final: StudyResult
-    tuned: dict  # changed keys of the final best set
+    tuned: dict  # changed SegmenterParams fields of the final best set (as_params)
     train_f1_tuned: float
     train_f1_defaults: float
     cv_f1_tuned: Optional[float]
@@ -322,7 +343,7 @@ def tune(frames: Sequence[LabelledFrame], engine, trials: int, seed: int = 0,
                       'train_f1': fold.choice.best_f1,
                       'test_f1_tuned': pooled_f1(fold.test_counts),
                       'test_f1_defaults': pooled_f1(base),
-                      'changed': changed_values(fold.choice.best_values)})
+                      'changed': as_params(changed_values(fold.choice.best_values))})
         log(f'fold {k + 1}/{len(scenes)} (held out {fold.held_out}): test F1 tuned '
             f'{pooled_f1(fold.test_counts):.4f}, defaults {pooled_f1(base):.4f}')
     final = run_study(engine, frames, trials, seed)
@@ -330,7 +351,7 @@ def tune(frames: Sequence[LabelledFrame], engine, trials: int, seed: int = 0,
         f'{final.defaults_f1:.4f}); {final.pruned} pruned, {final.failed} failed')
     held_defaults = [by_frame[f] for fold in cv.folds for f in frames if f.scene == fold.held_out]
     return TuneReport(frames, scenes, trials, seed, engine.description, final,
-                      changed_values(final.best_values), final.best_f1,
+                      as_params(changed_values(final.best_values)), final.best_f1,
                       pooled_f1(default_counts),
                       cv.pooled['f1'] if folds else None,
                       pooled_f1(held_defaults) if folds else None, folds)

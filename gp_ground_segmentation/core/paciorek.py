@@ -15,6 +15,10 @@ prefactor sqrt(2 d_i d_j / (d_i^2 + d_j^2)) does not depend on a, and
 solve passes (d_i, d_j, 1 / a^2) and the prediction (L_i, L_j, 1). The log-gradient of the
 marginal likelihood needs dk / dlog sigma_f = 2 k and dk / dlog a = 2 k q / a^2: q is returned
 for it.
+
+The same kernel in two dimensions (:func:`paciorek_2d`, ours: the coupled surface,
+coupled_surface.py) has an isotropic length scale L_i per point: Paciorek's prefactor
+|L_i^2 I|^(1/4) |L_j^2 I|^(1/4) |(L_i^2 + L_j^2) I / 2|^(-1/2) is then the 1-D one squared.
 """
 
 from __future__ import annotations
@@ -39,5 +43,14 @@ def paciorek_kernel(r1, l1, r2, l2, sigma_f):
     return paciorek(r1 - r2, l1, l2, sigma_f * sigma_f, 1.0)[0]
 
 
-# inlined into its compiled callers (numba IR: no call per pair of points)
+def paciorek_2d(dx, dy, l_i, l_j, sigma_f2):
+    """k of points (dx, dy) apart in the plane with isotropic length scales l_i, l_j:
+    sigma_f2 (2 l_i l_j / s) exp(-(dx^2 + dy^2) / s), s = l_i^2 + l_j^2 (module docstring).
+    Scalars (compiled) or broadcastable arrays (numpy)."""
+    s = l_i * l_i + l_j * l_j
+    return sigma_f2 * (2.0 * l_i * l_j / s) * np.exp(-(dx * dx + dy * dy) / s)
+
+
+# inlined into their compiled callers (numba IR: no call per pair of points)
 paciorek_compiled = kernel(paciorek, inline='always') or paciorek  # numpy's without numba
+paciorek_2d_compiled = kernel(paciorek_2d, inline='always') or paciorek_2d

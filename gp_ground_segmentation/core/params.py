@@ -272,6 +272,13 @@ class SegmenterParams:
         0.3, 'cap (m) on the total ground threshold, however large the predictive std; must be '
         'at least ground_threshold_m', 0.0, 100.0)
 
+    use_coupled_surface: bool = _param(
+        False, 'ours: the ground on each border between two segments from a GP over both '
+        'segments\' training candidates at their (x, y) (the paper\'s kernel in 2-D, the '
+        'frame\'s theta), each point\'s height linear in azimuth between its segment\'s '
+        'borders, so the ground follows slopes across the beams (coupled_surface.py); false: '
+        'the paper\'s height per segment')
+
     # --- feet of vertical structures (structure.py) ------------------------------------------
     use_vertical_structure_test: bool = _param(
         True, 'ours: relabel as obstacle a ground point with another point within a few cm '
@@ -295,6 +302,17 @@ class SegmenterParams:
         0.7, 'points higher than this (m) above the predicted ground are not columns (tree '
         'crowns, car bodies and signs overhanging visible ground); above structure_rise_m',
         0.0, 100.0)
+    use_free_space_feet: bool = _param(
+        False, 'ours: a structure foot stays ground when the sensor saw under its column: a '
+        'ground return farther out whose ray passed between the foot and the column\'s lowest '
+        'point (the ground under a car sill, a bumper, a canopy; free_space.py); needs '
+        'use_vertical_structure_test')
+    free_space_clearance_m: float = _param(
+        0.03, 'the ray that spares a foot passes more than this (m) above the foot and below the '
+        'lowest column point above it (use_free_space_feet)', 0.0, 1.0)
+    free_space_beyond_m: float = _param(
+        0.1, 'the return of that ray lies more than this (m) farther out than the foot '
+        '(use_free_space_feet)', 0.0, 10.0)
 
     # --- sensor pose in the cloud's frame (sensor_frame.py) ------------------------------------
     sensor_x_m: float = _param(

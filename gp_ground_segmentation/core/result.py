@@ -48,6 +48,8 @@ class SegmentationDetails:
     length_factor_at_edges: Optional[np.ndarray] = None  # (S, N + 1) d used at the bin edges
     structure_feet: Optional[np.ndarray] = None  # (P,) bool: passed the height test, obstacle
     # as the foot of a vertical structure (None when use_vertical_structure_test is off)
+    coupled_lattice: Optional[np.ndarray] = None  # (M, 2, N + 1) ground on each segment's
+    # left and right border at its bin edges (use_coupled_surface; ground_mean is halfway)
 
 
 @dataclass

@@ -33,7 +33,8 @@ import time
 
 import numpy as np
 
-from . import anchor, compiled, labels, outliers, plateau, stages, structure
+from . import anchor, compiled, coupled_surface, labels, outliers, plateau, stages
+from . import structure
 from .gp import FrameGP, GPSolution, numpy_blas_limit, resolve_backend
 from .grid import RadialGrid, build_grid, valid_columns, valid_points_mask
 from .length_factors import frame_length_factors
@@ -240,13 +241,19 @@ class GroundSegmenter:
         with clock('gp_fit'):
             model = self._fit_ground_model(grid, lines, training, stats)
         use_compiled = self._backend == 'numba'  # numpy for good once the compiled GP failed
+        need_std = details or labels.STD_THRESHOLD.on(p)
         with clock('predict'):
-            need_std = details or labels.STD_THRESHOLD.on(p)
             edges = grid.bin_edges()
-            mean, std, d_star, k_star = ground_at_bin_edges(model, edges, need_std, use_compiled)
+            mean, std, d_star, k_star, lattice = self._ground_at_edges(model, grid, x, y, edges,
+                                                                       need_std)
         with clock('label'):
             threshold = labels.edge_thresholds(edges, mean, std, p, use_compiled)
-            z_hat, ground_v = labels.label_points(mean, threshold, grid, z, use_compiled)
+            if lattice is None:
+                z_hat, ground_v = labels.label_points(mean, threshold, grid, z, use_compiled)
+            else:
+                z_hat = coupled_surface.between_borders(lattice, grid, use_compiled)
+                ground_v = labels.is_ground(z, z_hat, threshold if np.ndim(threshold) == 0
+                                            else labels.interpolate_at_points(threshold, grid))
         feet = None
         if structure.STAGE.on(p):
             with clock('structure'):
@@ -264,13 +271,27 @@ class GroundSegmenter:
                 np.flatnonzero(valid), grid, lines, model.training, model.outliers,
                 np.where(grid.has_candidate, model.theta[1] * model.length_factor, np.nan),
                 edges, mean, std, np.broadcast_to(np.asarray(threshold, np.float64), z.shape),
-                model.gp, model.solution, d_star, feet)
+                model.gp, model.solution, d_star, feet, lattice)
         surface = frame_surface(model, grid, edges, mean, std if need_std else None, z,
                                 ground_v, z_hat, k_star, p.sensor_pose, use_compiled)
         return SegmentationResult(ground, valid, height, self._theta, timings, stats, extra,
                                   surface, xyz[:, 2])
 
     # --- the stages -----------------------------------------------------------------------
+    def _ground_at_edges(self, model: GroundModel, grid: RadialGrid, x, y, edges, need_std):
+        """Stage ``predict``: (mean, std, d*, k* at the bin edges, coupled lattice or None).
+        The paper's per-segment posterior, or the coupled surface's borders and their centre
+        (coupled_surface.py) with the per-segment std when the labels or details need it."""
+        p, use_compiled = self._params, self._backend == 'numba'
+        if not coupled_surface.STAGE.on(p):
+            return (*ground_at_bin_edges(model, edges, need_std, use_compiled), None)
+        lattice, mean = coupled_surface.coupled_ground(model, grid, x, y, edges,
+                                                       p.max_length_factor, use_compiled)
+        std = d_star = k_star = None
+        if need_std:
+            _, std, d_star, k_star = ground_at_bin_edges(model, edges, True, use_compiled)
+        return mean, std, d_star, k_star, lattice
+
     def _lines(self, grid: RadialGrid) -> LineSegments:
         """Algorithm 1 over the candidates, with the chord slopes of one-point lines."""
         p, use_compiled = self._params, self._backend == 'numba'

@@ -13,12 +13,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import anchor, gp, grid, labels, length_factors, lines, outliers, plateau, predict
-from . import structure, surface
+from . import anchor, coupled_surface, free_space, gp, grid, labels, length_factors, lines
+from . import outliers, plateau, predict, structure, surface
 
 STAGES = (grid.STAGES + lines.STAGES + anchor.STAGES + plateau.STAGES + length_factors.STAGES
-          + gp.STAGES + outliers.STAGES + predict.STAGES + labels.STAGES + structure.STAGES
-          + surface.STAGES)
+          + gp.STAGES + outliers.STAGES + predict.STAGES + coupled_surface.STAGES
+          + labels.STAGES + structure.STAGES
+          + free_space.STAGES + surface.STAGES)
 
 # the precisions of a frame's points: float32 first (every LiDAR driver's), then float64
 POINT_DTYPES = (np.float32, np.float64)

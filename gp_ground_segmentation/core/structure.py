@@ -26,6 +26,8 @@ from __future__ import annotations
 import numpy as np
 
 from .compiled import Stage, Twin, kernel
+from . import free_space as _free_space
+from .free_space import FREE_SPACE
 from .grid import _angle, _segment_of_angle
 
 __all__ = ['vertical_structure_mask', 'structure_feet']
@@ -48,13 +50,17 @@ def structure_feet(params, x, y, z, ground_z, candidate, *, r=None, angle=None,
                    compiled: bool = True):
     """:func:`vertical_structure_mask` with the sizes of ``params`` (SegmenterParams:
     structure_cell_m, structure_cell_deg, structure_rise_m, structure_max_height_m,
-    structure_step_m): the stage ``structure`` of the segmenter, also for tools that apply it
-    to other ground heights."""
+    structure_step_m), and the free-space stage's (free_space.py) when it is on: the stages
+    ``structure`` and ``free_space`` of the segmenter, also for tools that apply them to other
+    ground heights."""
+    free_space = None
+    if _free_space.STAGE.on(params):
+        free_space = (params.free_space_clearance_m, params.free_space_beyond_m)
     return vertical_structure_mask(
         x, y, z, ground_z, candidate, cell_m=params.structure_cell_m,
         cell_deg=params.structure_cell_deg, rise_m=params.structure_rise_m,
         max_height_m=params.structure_max_height_m, step_m=params.structure_step_m, r=r,
-        angle=angle, compiled=compiled)
+        angle=angle, compiled=compiled, free_space=free_space)
 
 
 def vertical_structure_mask(x: np.ndarray, y: np.ndarray, z: np.ndarray,
@@ -62,7 +68,7 @@ def vertical_structure_mask(x: np.ndarray, y: np.ndarray, z: np.ndarray,
                             cell_deg: float, rise_m: float, max_height_m: float,
                             step_m: float, r: np.ndarray | None = None,
                             angle: np.ndarray | None = None,
-                            compiled: bool = True) -> np.ndarray:
+                            compiled: bool = True, free_space=None) -> np.ndarray:
     """Bool mask of the ``candidate`` points that stand at the foot of a vertical structure.
 
     x, y, z: (P,) finite coordinates (m); ground_z: (P,) predicted ground height under each
@@ -73,7 +79,9 @@ def vertical_structure_mask(x: np.ndarray, y: np.ndarray, z: np.ndarray,
     r: (P,) horizontal range sqrt(x^2 + y^2) (m) and angle: (P,) float64 azimuth
     arctan2(y, x) (rad, as ``grid._angle`` computes it) when the caller has them (the grid
     does). compiled: the numba passes when numba imports and they are compiled for these
-    types (else their numpy twins, the same mask; False: the twins always).
+    types (else their numpy twins, the same mask; False: the twins always). free_space:
+    (clearance_m, beyond_m) to spare the feet with free space under their column
+    (free_space.py), or None.
     Returns a (P,) bool mask, a subset of ``candidate``.
     """
     cell_rad = np.radians(cell_deg)
@@ -88,10 +96,12 @@ def vertical_structure_mask(x: np.ndarray, y: np.ndarray, z: np.ndarray,
     select = (angle, z, ground_z, candidate, r, height_type(rise_m), height_type(max_height_m),
               r.dtype.type(limit))
     # the step in z's precision, as numpy compares a float32 difference with a Python float
-    return _mask_in_cells(select, cell_m, cell_rad, z.dtype.type(step_m), compiled)
+    return _mask_in_cells(select, cell_m, cell_rad, z.dtype.type(step_m), compiled,
+                          free_space)
 
 
-def _mask_in_cells(select, cell_m: float, cell_rad: float, step, compiled: bool):
+def _mask_in_cells(select, cell_m: float, cell_rad: float, step, compiled: bool,
+                   free_space=None):
     """The mask in two passes, each compiled when ``compiled`` and ready (else its numpy
     twin, the same result): the selection and the points' polar cells, then the far rings,
     the table, the look-ups and the mask. Only the far rings' log is numpy's on both paths
@@ -101,16 +111,24 @@ def _mask_in_cells(select, cell_m: float, cell_rad: float, step, compiled: bool)
     cells of ``cell_m`` out to r_square = cell_m / cell_rad, where an azimuth cell is cell_m
     wide, then cells growing with r: index r_square / cell_m + ln(r / r_square) / cell_rad,
     continuous at r_square. Float64 maths whatever the input precision: a float32 cloud and its
-    float64 copy must put every point in the same cell."""
+    float64 copy must put every point in the same cell. ``free_space``: (clearance_m,
+    beyond_m) of the free-space stage (free_space.py), which then spares the feet it clears, or
+    None."""
     n_az = max(1, int(np.ceil(2.0 * np.pi / cell_rad)))
     r_square = cell_m / cell_rad
     # the constants as _segment_of_angle computes them
     cells = (n_az, n_az / (2.0 * np.pi), 1.0 / cell_m, r_square, 1.0 / r_square)
     (az_col, ring_col, z_col, cand, az_cand, ring_cand, z_cand, far_index, n_far_col,
-     far_ratio) = SELECT_CELLS.run(compiled, *select, *cells)
-    return CELLS_HITS.run(compiled, select[1].size, az_col, ring_col, z_col, cand, az_cand,
-                          ring_cand, z_cand, far_index, n_far_col, np.log(far_ratio),
-                          r_square / cell_m, 1.0 / cell_rad, n_az, step)
+     far_ratio, r_cand) = SELECT_CELLS.run(compiled, *select, *cells)
+    feet, column_low = CELLS_HITS.run(
+        compiled, select[1].size, az_col, ring_col, z_col, cand, az_cand, ring_cand, z_cand,
+        far_index, n_far_col, np.log(far_ratio), r_square / cell_m, 1.0 / cell_rad, n_az, step,
+        free_space is not None)
+    if free_space is None or not feet.any():
+        return feet
+    clearance_m, beyond_m = free_space
+    return FREE_SPACE.run(compiled, feet, cand, az_cand, r_cand, z_cand, column_low, n_az,
+                          float(clearance_m), float(beyond_m))
 
 
 def _cells_numpy(angle, r, n_az, inv_cell_m, r_square):
@@ -132,7 +150,7 @@ def _select_cells_numpy(angle, z, ground_z, candidate, r, rise_m, max_height_m, 
     az_cand, ring_cand, far_cand = _cells_numpy(angle_cand, r_cand, n_az, inv_cell_m, r_square)
     far_ratio = np.concatenate([r_col[far_col], r_cand[far_cand]]) * inv_r_square
     return (az_col, ring_col, z_col, cand, az_cand, ring_cand, z_cand,
-            np.concatenate([far_col, far_cand]), far_col.size, far_ratio)
+            np.concatenate([far_col, far_cand]), far_col.size, far_ratio, r_cand)
 
 
 def _select_cells_loop(angle, z, ground_z, candidate, r, rise_m, max_height_m, limit, n_az,
@@ -141,7 +159,7 @@ def _select_cells_loop(angle, z, ground_z, candidate, r, rise_m, max_height_m, l
     (compiled with numba): azimuth cell, radial cell out to ``r_square`` (0 beyond), and of
     the points beyond it their index (column points first, then candidates; ``n_far_col`` of
     the former) and r / r_square, whose log numpy takes (:func:`_mask_in_cells`' cells,
-    the same float64 operations as :func:`_cells_numpy`)."""
+    the same float64 operations as :func:`_cells_numpy`), and the candidates' r."""
     angle_col, z_col, r_col, cand, angle_cand, z_cand, r_cand = _select_compiled(
         angle, z, ground_z, candidate, r, rise_m, max_height_m, limit)
     n_col, n_cand = z_col.size, z_cand.size
@@ -168,7 +186,7 @@ def _select_cells_loop(angle, z, ground_z, candidate, r, rise_m, max_height_m, l
         if part == 0:
             n_far_col = n_far
     return (az_col, ring_col, z_col, cand, az_cand, ring_cand, z_cand, far_index[:n_far],
-            n_far_col, far_ratio[:n_far])
+            n_far_col, far_ratio[:n_far], r_cand)
 
 
 def _far_rings(ring_col, ring_cand, far_index, n_far_col, log_ratio, ring_base,
@@ -181,38 +199,44 @@ def _far_rings(ring_col, ring_cand, far_index, n_far_col, log_ratio, ring_base,
 
 
 def _cells_hits_numpy(n_points, az_col, ring_col, z_col, cand, az_cand, ring_cand, z_cand,
-                      far_index, n_far_col, log_ratio, ring_base, inv_cell_rad, n_az, step):
+                      far_index, n_far_col, log_ratio, ring_base, inv_cell_rad, n_az, step,
+                      with_low):
     """The numpy twin of :func:`_cells_hits_loop` (while it compiles, or without numba)."""
     out = np.zeros(n_points, dtype=bool)
+    low = np.full(cand.size if with_low else 0, np.inf, dtype=z_col.dtype)
     if cand.size == 0 or z_col.size == 0:
-        return out
+        return out, low
     ring_col, ring_cand = ring_col.copy(), ring_cand.copy()
     _far_rings(ring_col, ring_cand, far_index, n_far_col, log_ratio, ring_base, inv_cell_rad)
     width = int(max(ring_col.max(), ring_cand.max())) + 3
-    out[cand] = _structure_hits_numpy(az_col, ring_col, z_col, az_cand, ring_cand, z_cand,
-                                      n_az, width, step)
-    return out
+    out[cand], low = _structure_hits_numpy(az_col, ring_col, z_col, az_cand, ring_cand,
+                                           z_cand, n_az, width, step, with_low)
+    return out, low
 
 
 def _cells_hits_loop(n_points, az_col, ring_col, z_col, cand, az_cand, ring_cand, z_cand,
-                     far_index, n_far_col, log_ratio, ring_base, inv_cell_rad, n_az, step):
+                     far_index, n_far_col, log_ratio, ring_base, inv_cell_rad, n_az, step,
+                     with_low):
     """The far rings (written into ``ring_col`` and ``ring_cand``), the compiled table and
     look-ups (:func:`_structure_hits_loop`) and the (P,) mask of the ``cand`` points that
-    hit, in one compiled call: the same mask as :func:`_cells_hits_numpy`."""
+    hit, in one compiled call, and (``with_low``) the lowest column point around each
+    candidate: the same as :func:`_cells_hits_numpy`."""
     out = np.zeros(n_points, dtype=np.bool_)
     if cand.size == 0 or z_col.size == 0:
-        return out
+        low = np.empty(cand.size if with_low else 0, dtype=z_col.dtype)
+        low[:] = np.inf
+        return out, low
     for f in range(far_index.size):
         ring = np.int32(ring_base + log_ratio[f] * inv_cell_rad)
         if f < n_far_col:
             ring_col[far_index[f]] = ring
         else:
             ring_cand[far_index[f]] = ring
-    hit = _structure_hits_compiled(az_col, ring_col, z_col, az_cand, ring_cand, z_cand, n_az,
-                                   0, step)
+    hit, low = _structure_hits_compiled(az_col, ring_col, z_col, az_cand, ring_cand, z_cand,
+                                        n_az, 0, step, with_low)
     for i in range(cand.size):
         out[cand[i]] = hit[i]
-    return out
+    return out, low
 
 
 def _select_numpy(angle, z, ground_z, candidate, r, rise_m, max_height_m, limit):
@@ -269,8 +293,9 @@ _select_compiled = kernel(_select_loop)
 
 
 def _structure_hits_numpy(az_col, ring_col, z_col, az_cand, ring_cand, z_cand, n_az, width,
-                          step):
-    """Candidates with a column point in their 3 x 3 cells more than ``step`` above them."""
+                          step, with_low):
+    """Candidates with a column point in their 3 x 3 cells more than ``step`` above them,
+    and (``with_low``) the lowest column point of those cells (+inf: none; else empty)."""
     # highest column point per cell; one spare cell on every side: row 0 repeats the last
     # azimuth row and row n_az + 1 the first (azimuth wraps around), so each of the 9
     # neighbours is a constant offset in the flat table
@@ -280,15 +305,26 @@ def _structure_hits_numpy(az_col, ring_col, z_col, az_cand, ring_cand, z_cand, n
     top[n_az + 1] = top[1]
     top = top.ravel()
     base = (az_cand + 1).astype(np.intp) * width + (ring_cand + 1)
+    offsets = (-width - 1, -width, -width + 1, -1, 0, 1, width - 1, width, width + 1)
     highest = np.full(az_cand.size, -np.inf, dtype=z_col.dtype)
-    for offset in (-width - 1, -width, -width + 1, -1, 0, 1, width - 1, width, width + 1):
+    for offset in offsets:
         np.maximum(highest, top.take(base + offset), out=highest)
-    return highest - z_cand > step
+    lowest = np.full(az_cand.size if with_low else 0, np.inf, dtype=z_col.dtype)
+    if with_low:  # the same table of the lowest column point per cell
+        bottom = np.full((n_az + 2, width), np.inf, dtype=z_col.dtype)
+        np.minimum.at(bottom.ravel(), (az_col + 1).astype(np.intp) * width + (ring_col + 1),
+                      z_col)
+        bottom[0] = bottom[n_az]
+        bottom[n_az + 1] = bottom[1]
+        bottom = bottom.ravel()
+        for offset in offsets:
+            np.minimum(lowest, bottom.take(base + offset), out=lowest)
+    return highest - z_cand > step, lowest
 
 
 def _structure_hits_loop(az_col, ring_col, z_col, az_cand, ring_cand, z_cand, n_az, width,
-                         step):
-    """:func:`_structure_hits_numpy` as loops (compiled with numba): the same mask.
+                         step, with_low):
+    """:func:`_structure_hits_numpy` as loops (compiled with numba): the same outputs.
 
     The table holds, per azimuth row, only the rings between that row's nearest and farthest
     column point (rows one after the other, as in a sparse row matrix) instead of the dense
@@ -320,16 +356,23 @@ def _structure_hits_loop(az_col, ring_col, z_col, az_cand, ring_cand, z_cand, n_
     # one spare cell at the end: -inf in z's precision, where every look-up starts (so that
     # highest - z is computed in that precision, as in the reference)
     top = np.empty(row_start[n_az] + 1, dtype=z_col.dtype)
+    bottom = np.empty(row_start[n_az] + 1 if with_low else 0, dtype=z_col.dtype)
     for cell in range(top.size):
         top[cell] = -np.inf
+    for cell in range(bottom.size):
+        bottom[cell] = np.inf
     for i in range(az_col.size):
         a = az_col[i]
         cell = row_start[a] + ring_col[i] - ring_lo[a]
         if z_col[i] > top[cell]:
             top[cell] = z_col[i]
+        if with_low and z_col[i] < bottom[cell]:
+            bottom[cell] = z_col[i]
     hit = np.zeros(az_cand.size, dtype=np.bool_)
+    low = np.empty(az_cand.size if with_low else 0, dtype=z_col.dtype)
     for i in range(az_cand.size):
         highest = top[top.size - 1]
+        lowest = np.inf
         ring = np.int64(ring_cand[i])
         row = np.int64(az_cand[i])
         before = row - 1 if row > 0 else n_az - 1  # the azimuth rows around, wrapping around
@@ -341,8 +384,12 @@ def _structure_hits_loop(az_col, ring_col, z_col, az_cand, ring_cand, z_cand, n_
                               row_start[a] + last - ring_lo[a] + 1):
                 if top[cell] > highest:
                     highest = top[cell]
+                if with_low and bottom[cell] < lowest:
+                    lowest = bottom[cell]
         hit[i] = highest - z_cand[i] > step
-    return hit
+        if with_low:
+            low[i] = lowest
+    return hit, low
 
 
 _structure_hits_compiled = kernel(_structure_hits_loop)
@@ -369,8 +416,9 @@ def _select_examples(dtype):
 
 def _hits_examples(dtype):
     cells = _select_cells_numpy(*_select_examples(dtype)[0])
-    return [(2, *cells[:-1], np.log(cells[-1]), _EXAMPLE_R_SQUARE / _EXAMPLE_CELL_M,
-             1.0 / _EXAMPLE_CELL_RAD, _EXAMPLE_N_AZ, np.dtype(dtype).type(0.05))]
+    return [(2, *cells[:-2], np.log(cells[-2]), _EXAMPLE_R_SQUARE / _EXAMPLE_CELL_M,
+             1.0 / _EXAMPLE_CELL_RAD, _EXAMPLE_N_AZ, np.dtype(dtype).type(0.05), with_low)
+            for with_low in (False, True)]
 
 
 SELECT_CELLS = Twin('structure selection and cells', _select_cells_numpy,

@@ -55,6 +55,7 @@ from .compiled import Stage, Twin, kernel, sort_in_place
 from .gp import numpy_blas_limit
 from .grid import bin_edges, segment_of
 from .labels import _rise_compiled, cross_segment_rise
+from .predict import ground_at_bin_edges
 from .sensor_frame import SensorPose
 
 # Tolerance (in bins) of height_at's range test: round-off between the grid's r and the one
@@ -323,6 +324,8 @@ def frame_surface(model, grid, edges, mean, std, z, ground, z_hat, k_star, pose,
         std = np.full(edges.shape, model.theta[0])  # the prior std where no GP segment is
         if model.solution is None:
             return std
+        if k_star is None:  # no per-segment prediction ran (the coupled surface): run it now
+            return ground_at_bin_edges(model, edges, True, compiled)[1]
         numpy_solution = model.gp.backend != 'numba' or model.solution.gradient is None
         limit = numpy_blas_limit() if numpy_solution else contextlib.nullcontext()
         with limit, np.errstate(over='ignore'):

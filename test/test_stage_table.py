@@ -50,7 +50,9 @@ def _parameter_sets():
     flipped = {f: not getattr(defaults, f) for f in ('use_chord_slope_for_single_points',
                                                      'use_anchor', 'use_cross_slope_threshold',
                                                      'use_std_threshold', 'use_wide_terrain_rule',
-                                                     'use_density_ring_normalisation')}
+                                                     'use_density_ring_normalisation',
+                                                     'use_coupled_surface',
+                                                     'use_free_space_feet')}
     return [defaults, defaults.replace(**flipped),
             defaults.replace(use_outlier_std_limit=False, use_elevated_plateaus=False,
                              use_length_factor_smoothing=False, use_outlier_rejection=False,

@@ -14,24 +14,25 @@ from gp_ground_segmentation.core.free_space import FREE_SPACE, spared_numpy
 N_AZ = 1440
 
 
-def _one_foot(other_r, other_z, column_low=-1.4, foot_z=-1.7, foot_r=8.0, same_cell=True):
-    """A foot at (foot_r, foot_z) whose column's lowest point is ``column_low`` and one other
-    ground candidate at (other_r, other_z): the arguments of the stage."""
+def _one_foot(other_r, other_z, foot_z=-1.7, foot_r=8.0, same_cell=True):
+    """A foot at (foot_r, foot_z) over predicted ground at -1.7 m, the structure test's column
+    height 0.2 m, and one other ground candidate at (other_r, other_z): the stage's arguments."""
     feet = np.array([True, False])
     cand = np.array([0, 1], dtype=np.intp)
     az = np.array([7, 7 if same_cell else 8], dtype=np.int32)
     return (feet, cand, az, np.array([foot_r, other_r]), np.array([foot_z, other_z]),
-            np.array([column_low, np.inf]), N_AZ, 0.03, 0.1)
+            np.array([-1.7, -1.7]), 0.2, N_AZ, 0.03, 0.1)
 
 
 def _spared(args, use_compiled=False):
     return not FREE_SPACE.run(use_compiled, *args)[0]
 
 
-def test_a_ray_under_the_column_spares_the_foot():
+def test_a_ray_under_the_column_height_spares_the_foot():
     # the ray to (8.4, -1.7) passes r = 8 at -1.7 * 8 / 8.4 = -1.619 m: 0.081 m above the foot,
-    # 0.219 m below the column's lowest point (-1.4): more than the 0.03 m clearance both ways
+    # 0.119 m below the column height (-1.7 + 0.2): more than the 0.03 m clearance both ways
     assert _spared(_one_foot(8.4, -1.7))
+    assert _spared(_one_foot(8.4, -1.7), use_compiled=compiled.AVAILABLE)
 
 
 @pytest.mark.parametrize('case, args', [
@@ -39,12 +40,12 @@ def test_a_ray_under_the_column_spares_the_foot():
     ('no return beyond', _one_foot(7.5, -1.7)),
     # the return is not farther out than beyond_m (0.1 m)
     ('too close', _one_foot(8.09, -1.69)),
-    # its ray passes r = 8 at -1.7 * 8 / 8.1 = -1.679: 0.021 m above the foot, within 0.03
-    ('too low over the foot', _one_foot(8.1, -1.7)),
-    # a return far out whose ray passes r = 8 at -1.2 * 8 / 12 = -0.8, above the column
-    ('above the column', _one_foot(12.0, -1.2)),
-    # the column's lowest point only 0.05 m above the foot: no room for a ray
-    ('no room under the column', _one_foot(8.4, -1.7, column_low=-1.65)),
+    # its ray passes r = 8 at -1.7 * 8 / 8.12 = -1.675: 0.025 m above the foot, within 0.03
+    ('too low over the foot', _one_foot(8.12, -1.7)),
+    # a return far out whose ray passes r = 8 at -1.2 * 8 / 12 = -0.8: above the column height
+    ('above the column height', _one_foot(12.0, -1.2)),
+    # a foot 0.19 m above the ground: no room below the column height for a ray
+    ('no room below the column height', _one_foot(8.4, -1.65, foot_z=-1.51)),
     # the return is in another azimuth cell
     ('other azimuth', _one_foot(8.4, -1.7, same_cell=False)),
 ])
@@ -55,8 +56,8 @@ def test_no_free_space_keeps_the_foot(case, args):
 def test_not_a_foot_is_untouched():
     feet = np.array([False, False, True])  # point 2 is no candidate of the stage's
     out = spared_numpy(feet, np.array([0, 1], dtype=np.intp), np.array([3, 3], dtype=np.int32),
-                       np.array([8.0, 8.4]), np.array([-1.7, -1.7]),
-                       np.array([-1.4, np.inf]), N_AZ, 0.03, 0.1)
+                       np.array([8.0, 8.4]), np.array([-1.7, -1.7]), np.full(3, -1.7), 0.2,
+                       N_AZ, 0.03, 0.1)
     assert out.tolist() == [False, False, True]
 
 
@@ -70,9 +71,9 @@ def test_twins_agree_on_random_feet(dtype):
     feet[cand[rng.random(n_cand) < 0.3]] = True
     r = rng.uniform(2.0, 30.0, n_cand)
     z = (-1.7 + rng.normal(0.0, 0.05, n_cand)).astype(dtype)
-    low = np.where(rng.random(n_cand) < 0.5, z + rng.uniform(0.0, 0.6, n_cand), np.inf)
-    args = (feet, cand, rng.integers(0, n_az, n_cand).astype(np.int32), r, z,
-            low.astype(dtype), n_az, 0.03, 0.1)
+    ground = (-1.7 + rng.normal(0.0, 0.05, n_points)).astype(dtype)
+    args = (feet, cand, rng.integers(0, n_az, n_cand).astype(np.int32), r, z, ground, 0.2,
+            n_az, 0.03, 0.1)
     reference = FREE_SPACE.reference(*args)
     assert 0 < np.count_nonzero(feet & ~reference) < np.count_nonzero(feet)  # some spared
     assert np.array_equal(FREE_SPACE.kernel(*args), reference)

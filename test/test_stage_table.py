@@ -52,7 +52,8 @@ def _parameter_sets():
                                                      'use_std_threshold', 'use_wide_terrain_rule',
                                                      'use_density_ring_normalisation',
                                                      'use_coupled_surface',
-                                                     'use_free_space_feet')}
+                                                     'use_free_space_feet',
+                                                     'use_nonstationary_length_scale')}
     return [defaults, defaults.replace(**flipped),
             defaults.replace(use_outlier_std_limit=False, use_elevated_plateaus=False,
                              use_length_factor_smoothing=False, use_outlier_rejection=False,

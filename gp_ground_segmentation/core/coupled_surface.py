@@ -24,9 +24,10 @@ it takes the frame's default height, as the per-segment model's segments without
 length scale at a knot is a d of segment b's nearest training candidate (as the per-segment
 prediction takes it), else of segment b + 1's, else of the flat clip ``max_length_factor``.
 
-Cost: one Cholesky of n <= 2 N + 1 points per border and (N + 1) n kernel values; the posterior
-std stays the per-segment model's (the threshold's ``use_std_threshold`` and the surface's
-z_std read it).
+Cost: one Cholesky of n <= 2 N + 1 points per border and (N + 1) n kernel values (with one
+length scale for every point, the stationary kernel, three exps a training point: the knots are
+equally spaced); the posterior std stays the per-segment model's (the threshold's
+``use_std_threshold`` and the surface's z_std read it).
 """
 
 from __future__ import annotations
@@ -185,6 +186,10 @@ def _borders_loop(cand_x, cand_y, cand_z, cand_l, training, knot_r, knot_l, sigm
         if not _cholesky_solve(a, alpha, n):
             continue
         phi = -math.pi + (b + 1.0) * width
+        if _one_length_scale(pl, n, knot_l, b):
+            _predict_stationary(out, b, knot_r, px, py, alpha, n, math.cos(phi), math.sin(phi),
+                                2.0 * pl[0] * pl[0], sf2, mean)
+            continue
         c, s = math.cos(phi), math.sin(phi)
         for k in range(knot_r.shape[1]):
             kx, ky = knot_r[b, k] * c, knot_r[b, k] * s
@@ -194,6 +199,50 @@ def _borders_loop(cand_x, cand_y, cand_z, cand_l, training, knot_r, knot_l, sigm
                                             sf2) * alpha[i]
             out[b, k] = mean + acc
     return out
+
+
+def _one_length_scale(pl, n, knot_l, b):
+    """Whether the border's n training points and its knots share one length scale (the
+    stationary kernel, ``use_nonstationary_length_scale`` off)."""
+    for i in range(n):
+        if pl[i] != pl[0]:
+            return False
+    for k in range(knot_l.shape[1]):
+        if knot_l[b, k] != pl[0]:
+            return False
+    return True
+
+
+def _predict_stationary(out, b, knot_r, px, py, alpha, n, c, s, s2, sf2, mean):
+    """The posterior mean at border b's knots for one length scale (prefactor 1, s2 = 2 L^2):
+    the knots are equally spaced along the border (r_k = r_0 + k w), so each training point's
+    exp(-|p_k - x_i|^2 / s2) follows from its value at the nearest knot by two ratios, one
+    constant (exp(-2 w^2 / s2)): three exps a training point instead of one a knot."""
+    n_knots = knot_r.shape[1]
+    r0 = knot_r[b, 0]
+    w = (knot_r[b, n_knots - 1] - r0) / (n_knots - 1)
+    ratio = math.exp(-2.0 * w * w / s2)
+    for k in range(n_knots):
+        out[b, k] = 0.0
+    for i in range(n):
+        t = px[i] * c + py[i] * s  # along the border
+        h2 = px[i] * px[i] + py[i] * py[i] - t * t  # across it, squared
+        peak = int(min(max(round((t - r0) / w) if w > 0.0 else 0.0, 0.0), n_knots - 1.0))
+        u = r0 + peak * w - t
+        value = math.exp(-(u * u + max(h2, 0.0)) / s2) * alpha[i]
+        out[b, peak] += value
+        up, step = value, math.exp(-(2.0 * w * u + w * w) / s2)
+        for k in range(peak + 1, n_knots):  # farther out: the exponent falls by step / ratio
+            up *= step
+            out[b, k] += up
+            step *= ratio
+        down, step = value, math.exp((2.0 * w * u - w * w) / s2)
+        for k in range(peak - 1, -1, -1):
+            down *= step
+            out[b, k] += down
+            step *= ratio
+    for k in range(n_knots):
+        out[b, k] = mean + sf2 * out[b, k]
 
 
 def _cholesky_solve(a, b, n):
@@ -226,6 +275,8 @@ def _cholesky_solve(a, b, n):
 
 
 _cholesky_solve = kernel(_cholesky_solve, inline='always') or _cholesky_solve
+_one_length_scale = kernel(_one_length_scale, inline='always') or _one_length_scale
+_predict_stationary = kernel(_predict_stationary) or _predict_stationary
 
 
 # ----------------------------------------------------------------------- the points' height

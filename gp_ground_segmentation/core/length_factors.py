@@ -1,6 +1,12 @@
 # SPDX-License-Identifier: Apache-2.0
 """Stage ``length factors``: d_i of every candidate, L_i = a d_i in the GP kernel.
 
+[paper, ``use_nonstationary_length_scale``] d_i from the candidate's line slope and rho~ (below),
+which makes Paciorek's kernel non-stationary. Off: every candidate has the one length factor
+``max_length_factor``, and with it the kernel is the stationary squared exponential of length
+a d_max (a learned by the marginal likelihood as before); the leave-one-group-out choice of
+benchmarks/bench_quality.py (benchmarks/RESULTS.md, "Ground quality").
+
 Eq. 12 [paper]: d_i = log(1 / g_i) / rho_i for a candidate whose line has slope g_i >= g_d, and
 log(1 / g_d) below the slope floor g_d. Guards of ours where the paper is silent: g is clipped to
 [g_d, g_max] with g_max < 1 (g >= 1 would give log(1/g) <= 0, a non-positive length scale), a
@@ -100,6 +106,8 @@ def frame_length_factors(slope, density, candidate_r, training, params, compiled
     and ranges, with the training candidates' ``training`` mask and the SegmenterParams
     ``params`` (module docstring)."""
     p = params
+    if not NONSTATIONARY.on(p):  # one length factor for every candidate: NaN where none
+        return np.where(np.isnan(candidate_r), np.nan, float(p.max_length_factor))
     training = np.ascontiguousarray(training, dtype=bool)
     usable, r_usable, rho_usable, inverse_slope, flat = USABLE.run(
         compiled, density, candidate_r, training, slope, float(p.slope_floor),
@@ -388,4 +396,6 @@ EDGES = Twin('length factors at the bin edges', _fill_rows_to_edges,
 
 NORMALISATION = Stage('ring normalisation', 'ours', 'use_density_ring_normalisation', (RING,))
 SMOOTHING = Stage('length-factor smoothing', 'ours', 'use_length_factor_smoothing', (SMOOTH,))
-STAGES = (Stage('length factors', 'paper', None, (USABLE, EQ12)), NORMALISATION, SMOOTHING)
+NONSTATIONARY = Stage('length factors', 'paper', 'use_nonstationary_length_scale',
+                      (USABLE, EQ12))
+STAGES = (NONSTATIONARY, NORMALISATION, SMOOTHING)

@@ -154,11 +154,17 @@ class SegmenterParams:
         False, 'also divide the flat-branch length scale log(1/g_d) by rho~ (continuous in g at '
         'g_d); False is the paper\'s formula, which scored higher recall on most scenes in '
         'benchmarks/sweep_params.py')
+    use_nonstationary_length_scale: bool = _param(
+        False, 'paper (eqs. 8, 12): each candidate\'s length scale L_i = a d_i from its line\'s '
+        'slope and rho~ (Paciorek\'s non-stationary kernel); false: one length factor, '
+        'max_length_factor, for every candidate (a stationary kernel of length a '
+        'max_length_factor)')
     min_length_factor: float = _param(
         0.05, 'lower clip of the length-scale factor d_i = log(1/g_i)/rho_i (dimensionless; '
         'L_i = a*d_i in m)', 1e-4, 100.0)
     max_length_factor: float = _param(
-        2.0, 'upper clip of the length-scale factor d_i (dimensionless)', 1e-2, 1e5)
+        2.0, 'upper clip of the length-scale factor d_i (dimensionless), and the one length '
+        'factor of every candidate without use_nonstationary_length_scale', 1e-2, 1e5)
     use_density_ring_normalisation: bool = _param(
         True, 'ours, not the paper\'s: rho_i in d_i = log(1/g_i)/rho_i is the bin\'s rho~ (a 2-D '
         'point density, points per m^2 of its sector) over its geometric mean among the '
@@ -251,7 +257,7 @@ class SegmenterParams:
 
     # --- labelling (segmenter.py) -------------------------------------------------------------
     ground_threshold_m: float = _param(
-        0.2, 'a point is ground when z - z_hat(r) <= this (m), widened by the std and '
+        0.25, 'a point is ground when z - z_hat(r) <= this (m), widened by the std and '
         'cross-slope rules and capped at max_threshold_m', 0.0, 10.0)
     use_std_threshold: bool = _param(
         False, 'ours: widen the ground threshold by std_threshold_factor times the GP\'s '
@@ -260,7 +266,7 @@ class SegmenterParams:
         1.0, 'multiplier (dimensionless) of the GP posterior std added to ground_threshold_m '
         '(use_std_threshold)', 0.01, 100.0)
     use_cross_slope_threshold: bool = _param(
-        True, 'ours, not the paper\'s: widen the ground threshold by the rise of the predicted '
+        False, 'ours, not the paper\'s: widen the ground threshold by the rise of the predicted '
         'ground across the segment (where the neighbouring segments at the same r rise on one '
         'side and fall on the other; the smaller step, capped at a cross_slope_max slope), so '
         'the high side of ground sloping across the beams stays ground')
@@ -273,7 +279,7 @@ class SegmenterParams:
         'at least ground_threshold_m', 0.0, 100.0)
 
     use_coupled_surface: bool = _param(
-        False, 'ours: the ground on each border between two segments from a GP over both '
+        True, 'ours: the ground on each border between two segments from a GP over both '
         'segments\' training candidates at their (x, y) (the paper\'s kernel in 2-D, the '
         'frame\'s theta), each point\'s height linear in azimuth between its segment\'s '
         'borders, so the ground follows slopes across the beams (coupled_surface.py); false: '
@@ -303,7 +309,7 @@ class SegmenterParams:
         'crowns, car bodies and signs overhanging visible ground); above structure_rise_m',
         0.0, 100.0)
     use_free_space_feet: bool = _param(
-        False, 'ours: a structure foot stays ground when the sensor saw under its column: a '
+        True, 'ours: a structure foot stays ground when the sensor saw under its column: a '
         'ground return farther out whose ray passed between the foot and the column\'s lowest '
         'point (the ground under a car sill, a bumper, a canopy; free_space.py); needs '
         'use_vertical_structure_test')

@@ -25,8 +25,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .compiled import Stage, Twin, kernel
 from . import free_space as _free_space
+from .compiled import Stage, Twin, kernel
 from .free_space import FREE_SPACE
 from .grid import _angle, _segment_of_angle
 
@@ -80,7 +80,7 @@ def vertical_structure_mask(x: np.ndarray, y: np.ndarray, z: np.ndarray,
     arctan2(y, x) (rad, as ``grid._angle`` computes it) when the caller has them (the grid
     does). compiled: the numba passes when numba imports and they are compiled for these
     types (else their numpy twins, the same mask; False: the twins always). free_space:
-    (clearance_m, beyond_m) to spare the feet with free space under their column
+    (clearance_m, beyond_m) to spare the feet under which the sensor saw free space
     (free_space.py), or None.
     Returns a (P,) bool mask, a subset of ``candidate``.
     """
@@ -120,15 +120,15 @@ def _mask_in_cells(select, cell_m: float, cell_rad: float, step, compiled: bool,
     cells = (n_az, n_az / (2.0 * np.pi), 1.0 / cell_m, r_square, 1.0 / r_square)
     (az_col, ring_col, z_col, cand, az_cand, ring_cand, z_cand, far_index, n_far_col,
      far_ratio, r_cand) = SELECT_CELLS.run(compiled, *select, *cells)
-    feet, column_low = CELLS_HITS.run(
-        compiled, select[1].size, az_col, ring_col, z_col, cand, az_cand, ring_cand, z_cand,
-        far_index, n_far_col, np.log(far_ratio), r_square / cell_m, 1.0 / cell_rad, n_az, step,
-        free_space is not None)
+    feet = CELLS_HITS.run(compiled, select[1].size, az_col, ring_col, z_col, cand, az_cand,
+                          ring_cand, z_cand, far_index, n_far_col, np.log(far_ratio),
+                          r_square / cell_m, 1.0 / cell_rad, n_az, step)
     if free_space is None or not feet.any():
         return feet
     clearance_m, beyond_m = free_space
-    return FREE_SPACE.run(compiled, feet, cand, az_cand, r_cand, z_cand, column_low, n_az,
-                          float(clearance_m), float(beyond_m))
+    ground_z, rise_m = select[2], select[5]
+    return FREE_SPACE.run(compiled, feet, cand, az_cand, r_cand, z_cand, ground_z,
+                          float(rise_m), n_az, float(clearance_m), float(beyond_m))
 
 
 def _cells_numpy(angle, r, n_az, inv_cell_m, r_square):
@@ -199,44 +199,38 @@ def _far_rings(ring_col, ring_cand, far_index, n_far_col, log_ratio, ring_base,
 
 
 def _cells_hits_numpy(n_points, az_col, ring_col, z_col, cand, az_cand, ring_cand, z_cand,
-                      far_index, n_far_col, log_ratio, ring_base, inv_cell_rad, n_az, step,
-                      with_low):
+                      far_index, n_far_col, log_ratio, ring_base, inv_cell_rad, n_az, step):
     """The numpy twin of :func:`_cells_hits_loop` (while it compiles, or without numba)."""
     out = np.zeros(n_points, dtype=bool)
-    low = np.full(cand.size if with_low else 0, np.inf, dtype=z_col.dtype)
     if cand.size == 0 or z_col.size == 0:
-        return out, low
+        return out
     ring_col, ring_cand = ring_col.copy(), ring_cand.copy()
     _far_rings(ring_col, ring_cand, far_index, n_far_col, log_ratio, ring_base, inv_cell_rad)
     width = int(max(ring_col.max(), ring_cand.max())) + 3
-    out[cand], low = _structure_hits_numpy(az_col, ring_col, z_col, az_cand, ring_cand,
-                                           z_cand, n_az, width, step, with_low)
-    return out, low
+    out[cand] = _structure_hits_numpy(az_col, ring_col, z_col, az_cand, ring_cand, z_cand,
+                                      n_az, width, step)
+    return out
 
 
 def _cells_hits_loop(n_points, az_col, ring_col, z_col, cand, az_cand, ring_cand, z_cand,
-                     far_index, n_far_col, log_ratio, ring_base, inv_cell_rad, n_az, step,
-                     with_low):
+                     far_index, n_far_col, log_ratio, ring_base, inv_cell_rad, n_az, step):
     """The far rings (written into ``ring_col`` and ``ring_cand``), the compiled table and
     look-ups (:func:`_structure_hits_loop`) and the (P,) mask of the ``cand`` points that
-    hit, in one compiled call, and (``with_low``) the lowest column point around each
-    candidate: the same as :func:`_cells_hits_numpy`."""
+    hit, in one compiled call: the same mask as :func:`_cells_hits_numpy`."""
     out = np.zeros(n_points, dtype=np.bool_)
     if cand.size == 0 or z_col.size == 0:
-        low = np.empty(cand.size if with_low else 0, dtype=z_col.dtype)
-        low[:] = np.inf
-        return out, low
+        return out
     for f in range(far_index.size):
         ring = np.int32(ring_base + log_ratio[f] * inv_cell_rad)
         if f < n_far_col:
             ring_col[far_index[f]] = ring
         else:
             ring_cand[far_index[f]] = ring
-    hit, low = _structure_hits_compiled(az_col, ring_col, z_col, az_cand, ring_cand, z_cand,
-                                        n_az, 0, step, with_low)
+    hit = _structure_hits_compiled(az_col, ring_col, z_col, az_cand, ring_cand, z_cand, n_az,
+                                   0, step)
     for i in range(cand.size):
         out[cand[i]] = hit[i]
-    return out, low
+    return out
 
 
 def _select_numpy(angle, z, ground_z, candidate, r, rise_m, max_height_m, limit):
@@ -293,9 +287,8 @@ _select_compiled = kernel(_select_loop)
 
 
 def _structure_hits_numpy(az_col, ring_col, z_col, az_cand, ring_cand, z_cand, n_az, width,
-                          step, with_low):
-    """Candidates with a column point in their 3 x 3 cells more than ``step`` above them,
-    and (``with_low``) the lowest column point of those cells (+inf: none; else empty)."""
+                          step):
+    """Candidates with a column point in their 3 x 3 cells more than ``step`` above them."""
     # highest column point per cell; one spare cell on every side: row 0 repeats the last
     # azimuth row and row n_az + 1 the first (azimuth wraps around), so each of the 9
     # neighbours is a constant offset in the flat table
@@ -305,26 +298,15 @@ def _structure_hits_numpy(az_col, ring_col, z_col, az_cand, ring_cand, z_cand, n
     top[n_az + 1] = top[1]
     top = top.ravel()
     base = (az_cand + 1).astype(np.intp) * width + (ring_cand + 1)
-    offsets = (-width - 1, -width, -width + 1, -1, 0, 1, width - 1, width, width + 1)
     highest = np.full(az_cand.size, -np.inf, dtype=z_col.dtype)
-    for offset in offsets:
+    for offset in (-width - 1, -width, -width + 1, -1, 0, 1, width - 1, width, width + 1):
         np.maximum(highest, top.take(base + offset), out=highest)
-    lowest = np.full(az_cand.size if with_low else 0, np.inf, dtype=z_col.dtype)
-    if with_low:  # the same table of the lowest column point per cell
-        bottom = np.full((n_az + 2, width), np.inf, dtype=z_col.dtype)
-        np.minimum.at(bottom.ravel(), (az_col + 1).astype(np.intp) * width + (ring_col + 1),
-                      z_col)
-        bottom[0] = bottom[n_az]
-        bottom[n_az + 1] = bottom[1]
-        bottom = bottom.ravel()
-        for offset in offsets:
-            np.minimum(lowest, bottom.take(base + offset), out=lowest)
-    return highest - z_cand > step, lowest
+    return highest - z_cand > step
 
 
 def _structure_hits_loop(az_col, ring_col, z_col, az_cand, ring_cand, z_cand, n_az, width,
-                         step, with_low):
-    """:func:`_structure_hits_numpy` as loops (compiled with numba): the same outputs.
+                         step):
+    """:func:`_structure_hits_numpy` as loops (compiled with numba): the same mask.
 
     The table holds, per azimuth row, only the rings between that row's nearest and farthest
     column point (rows one after the other, as in a sparse row matrix) instead of the dense
@@ -356,23 +338,16 @@ def _structure_hits_loop(az_col, ring_col, z_col, az_cand, ring_cand, z_cand, n_
     # one spare cell at the end: -inf in z's precision, where every look-up starts (so that
     # highest - z is computed in that precision, as in the reference)
     top = np.empty(row_start[n_az] + 1, dtype=z_col.dtype)
-    bottom = np.empty(row_start[n_az] + 1 if with_low else 0, dtype=z_col.dtype)
     for cell in range(top.size):
         top[cell] = -np.inf
-    for cell in range(bottom.size):
-        bottom[cell] = np.inf
     for i in range(az_col.size):
         a = az_col[i]
         cell = row_start[a] + ring_col[i] - ring_lo[a]
         if z_col[i] > top[cell]:
             top[cell] = z_col[i]
-        if with_low and z_col[i] < bottom[cell]:
-            bottom[cell] = z_col[i]
     hit = np.zeros(az_cand.size, dtype=np.bool_)
-    low = np.empty(az_cand.size if with_low else 0, dtype=z_col.dtype)
     for i in range(az_cand.size):
         highest = top[top.size - 1]
-        lowest = np.inf
         ring = np.int64(ring_cand[i])
         row = np.int64(az_cand[i])
         before = row - 1 if row > 0 else n_az - 1  # the azimuth rows around, wrapping around
@@ -384,12 +359,8 @@ def _structure_hits_loop(az_col, ring_col, z_col, az_cand, ring_cand, z_cand, n_
                               row_start[a] + last - ring_lo[a] + 1):
                 if top[cell] > highest:
                     highest = top[cell]
-                if with_low and bottom[cell] < lowest:
-                    lowest = bottom[cell]
         hit[i] = highest - z_cand[i] > step
-        if with_low:
-            low[i] = lowest
-    return hit, low
+    return hit
 
 
 _structure_hits_compiled = kernel(_structure_hits_loop)
@@ -417,8 +388,7 @@ def _select_examples(dtype):
 def _hits_examples(dtype):
     cells = _select_cells_numpy(*_select_examples(dtype)[0])
     return [(2, *cells[:-2], np.log(cells[-2]), _EXAMPLE_R_SQUARE / _EXAMPLE_CELL_M,
-             1.0 / _EXAMPLE_CELL_RAD, _EXAMPLE_N_AZ, np.dtype(dtype).type(0.05), with_low)
-            for with_low in (False, True)]
+             1.0 / _EXAMPLE_CELL_RAD, _EXAMPLE_N_AZ, np.dtype(dtype).type(0.05))]
 
 
 SELECT_CELLS = Twin('structure selection and cells', _select_cells_numpy,

@@ -46,7 +46,6 @@ def spared_numpy(feet, cand, az_cand, r_cand, z_cand, ground_z, rise_m, n_az, cl
     if foot.size == 0:
         return out
     z64 = z_cand.astype(np.float64)
-    slope = z64 / r_cand
     lo = (z64[foot] + clearance_m) / r_cand[foot]
     hi = ((ground_z[cand[foot]].astype(np.float64) + rise_m) - clearance_m) / r_cand[foot]
     order = np.argsort(az_cand, kind='stable')
@@ -56,8 +55,9 @@ def spared_numpy(feet, cand, az_cand, r_cand, z_cand, ground_z, rise_m, n_az, cl
     owner = np.repeat(np.arange(foot.size), count)
     first = np.repeat(start[row] - (np.cumsum(count) - count), count)
     other = order[first + np.arange(owner.size)]
-    ray = ((r_cand[other] > r_cand[foot][owner] + beyond_m) & (slope[other] > lo[owner])
-           & (slope[other] < hi[owner]))
+    # the ray's slope z / r between lo and hi, without a division per candidate: r > 0
+    ray = ((r_cand[other] > r_cand[foot][owner] + beyond_m)
+           & (z64[other] > lo[owner] * r_cand[other]) & (z64[other] < hi[owner] * r_cand[other]))
     spared = np.zeros(foot.size, dtype=bool)
     spared[owner[ray]] = True
     out[cand[foot[spared]]] = False
@@ -66,9 +66,9 @@ def spared_numpy(feet, cand, az_cand, r_cand, z_cand, ground_z, rise_m, n_az, cl
 
 def _spared_loop(feet, cand, az_cand, r_cand, z_cand, ground_z, rise_m, n_az, clearance_m,
                  beyond_m):
-    """:func:`spared_numpy` as loops (compiled with numba): the candidates' ranges and ray
-    slopes z / r counted into their azimuth cells once (contiguous per cell, so each foot scans
-    its cell in order), then each foot's cell scanned until a ray is found."""
+    """:func:`spared_numpy` as loops (compiled with numba): the candidates' ranges and heights
+    counted into their azimuth cells once (contiguous per cell, so each foot scans its cell in
+    order), then each foot's cell scanned until a ray is found."""
     out = feet.copy()
     start = np.zeros(n_az + 1, dtype=np.int64)
     for j in range(az_cand.size):
@@ -77,11 +77,11 @@ def _spared_loop(feet, cand, az_cand, r_cand, z_cand, ground_z, rise_m, n_az, cl
         start[a + 1] += start[a]
     fill = start[:n_az].copy()
     cell_r = np.empty(az_cand.size)
-    cell_slope = np.empty(az_cand.size)
+    cell_z = np.empty(az_cand.size)
     for j in range(az_cand.size):
         k = fill[az_cand[j]]
         cell_r[k] = r_cand[j]
-        cell_slope[k] = np.float64(z_cand[j]) / r_cand[j]
+        cell_z[k] = np.float64(z_cand[j])
         fill[az_cand[j]] = k + 1
     for i in range(cand.size):
         if not feet[cand[i]]:
@@ -93,7 +93,7 @@ def _spared_loop(feet, cand, az_cand, r_cand, z_cand, ground_z, rise_m, n_az, cl
         beyond = r_cand[i] + beyond_m
         a = az_cand[i]
         for k in range(start[a], start[a + 1]):
-            if cell_r[k] > beyond and cell_slope[k] > lo and cell_slope[k] < hi:
+            if cell_r[k] > beyond and cell_z[k] > lo * cell_r[k] and cell_z[k] < hi * cell_r[k]:
                 out[cand[i]] = False
                 break
     return out

@@ -114,6 +114,7 @@ _label_compiled = None
 if AVAILABLE:  # the pass calls the compiled label rule, inlined per point
     _is_ground = kernel(is_ground, inline='always')
     _label_compiled = kernel(_label_loop)
+is_ground_compiled = _is_ground  # for other stages' compiled passes (coupled_surface.py)
 
 
 def _label_examples(dtype):

@@ -251,9 +251,8 @@ class GroundSegmenter:
             if lattice is None:
                 z_hat, ground_v = labels.label_points(mean, threshold, grid, z, use_compiled)
             else:
-                z_hat = coupled_surface.between_borders(lattice, grid, use_compiled)
-                ground_v = labels.is_ground(z, z_hat, threshold if np.ndim(threshold) == 0
-                                            else labels.interpolate_at_points(threshold, grid))
+                z_hat, ground_v = coupled_surface.coupled_labels(lattice, grid, z, threshold,
+                                                                 use_compiled)
         feet = None
         if structure.STAGE.on(p):
             with clock('structure'):

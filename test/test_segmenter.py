@@ -500,7 +500,8 @@ def test_compiled_length_factors_equal_the_numpy_reference(seed):
     params = SegmenterParams(
         slope_floor=0.02, slope_ceiling=0.9, density_in_flat_branch=bool(seed % 2),
         min_length_factor=0.05, max_length_factor=50.0, use_length_factor_smoothing=passes > 0,
-        length_factor_smoothing_passes=max(passes, 1), use_density_ring_normalisation=normalise)
+        length_factor_smoothing_passes=max(passes, 1), use_density_ring_normalisation=normalise,
+        use_nonstationary_length_scale=True)
     args = (slope, density, candidate_r, training, params)
     module.frame_length_factors(*args)  # queues the passes' compilation
     assert compiled.wait(300.0)

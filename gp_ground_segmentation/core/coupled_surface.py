@@ -196,7 +196,7 @@ def _borders_loop(x, y, candidate_index, candidate_z, d, training, edges, gain, 
             continue
         phi = -math.pi + (b + 1.0) * width
         c, s = math.cos(phi), math.sin(phi)
-        if _one_length_scale(pl, n, knot_l):
+        if _one_length_scale(pl, n, knot_l) and _finite_spacing(edges, b):
             _predict_stationary(border, b, edges, px, py, alpha, n, c, s,
                                 2.0 * pl[0] * pl[0], sf2, mean)
             continue
@@ -288,6 +288,13 @@ def _one_length_scale(pl, n, knot_l):
     return True
 
 
+def _finite_spacing(edges, b):
+    """Whether border b's knot spacing squared is a finite number (absurdly far points make
+    it overflow; the general prediction handles them)."""
+    w = (edges[b, edges.shape[1] - 1] - edges[b, 0]) / (edges.shape[1] - 1)
+    return w * w < 1e300
+
+
 def _predict_stationary(out, b, knot_r, px, py, alpha, n, c, s, s2, sf2, mean):
     """The posterior mean at border b's knots for one length scale (prefactor 1, s2 = 2 L^2):
     the knots are equally spaced along the border (r_k = r_0 + k w), so each training point's
@@ -301,10 +308,12 @@ def _predict_stationary(out, b, knot_r, px, py, alpha, n, c, s, s2, sf2, mean):
         out[b, k] = 0.0
     for i in range(n):
         t = px[i] * c + py[i] * s  # along the border
-        h2 = px[i] * px[i] + py[i] * py[i] - t * t  # across it, squared
+        h = py[i] * c - px[i] * s  # across it (no difference of squares: no inf - inf)
         peak = int(min(max(round((t - r0) / w) if w > 0.0 else 0.0, 0.0), n_knots - 1.0))
         u = r0 + peak * w - t
-        value = math.exp(-(u * u + max(h2, 0.0)) / s2) * alpha[i]
+        value = math.exp(-(u * u + h * h) / s2) * alpha[i]
+        if value == 0.0:  # 0 at its nearest knot: 0 at all of them (and no 0 * inf below)
+            continue
         out[b, peak] += value
         up, step = value, math.exp(-(2.0 * w * u + w * w) / s2)
         for k in range(peak + 1, n_knots):  # farther out: the exponent falls by step / ratio
@@ -355,6 +364,7 @@ def _cholesky_solve(a, b, n):
 _FAST = dict(fastmath={'reassoc', 'contract', 'nsz', 'arcp'})
 _cholesky_solve = kernel(_cholesky_solve, inline='always', **_FAST) or _cholesky_solve
 _one_length_scale = kernel(_one_length_scale, inline='always') or _one_length_scale
+_finite_spacing = kernel(_finite_spacing, inline='always') or _finite_spacing
 _gather_border = kernel(_gather_border, inline='always') or _gather_border
 _fill_knot_factors = kernel(_fill_knot_factors, inline='always') or _fill_knot_factors
 _predict_stationary = kernel(_predict_stationary, **_FAST) or _predict_stationary

@@ -272,7 +272,7 @@ class GroundSegmenter:
                 edges, mean, std, np.broadcast_to(np.asarray(threshold, np.float64), z.shape),
                 model.gp, model.solution, d_star, feet, lattice)
         surface = frame_surface(model, grid, edges, mean, std if need_std else None, z,
-                                ground_v, z_hat, k_star, p.sensor_pose, use_compiled)
+                                ground_v, z_hat, k_star, p.sensor_pose, use_compiled, lattice)
         return SegmentationResult(ground, valid, height, self._theta, timings, stats, extra,
                                   surface, xyz[:, 2])
 

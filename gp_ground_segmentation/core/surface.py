@@ -81,7 +81,8 @@ class GroundSurface:
                  segment_supported: np.ndarray, std: Optional[np.ndarray] = None,
                  compute_std: Optional[Callable[[], np.ndarray]] = None,
                  compute_offset: Optional[Callable[[], np.ndarray]] = None,
-                 pose: SensorPose = SensorPose(), compiled: bool = True):
+                 pose: SensorPose = SensorPose(), compiled: bool = True,
+                 borders: Optional[np.ndarray] = None):
         """``segment_r_min``, ``bin_width``, ``segment_has_points``, ``segment_supported``:
         (M,) grid geometry and flags; ``mean`` (M, N + 1) posterior mean at the bin edges.
         ``std`` is the posterior std there, or None and ``compute_std()`` returns it when first
@@ -89,7 +90,10 @@ class GroundSurface:
         (m, scalar or (M, N + 1)) when first needed; None: no offset. The grid and ``mean``
         are in the levelled sensor frame of ``pose`` (sensor_frame.py); x, y, z and height_at
         are in the input's frame. ``compiled``: :meth:`points` in one numba pass (the same
-        values as its numpy reference) unless told otherwise."""
+        values as its numpy reference) unless told otherwise. ``borders``: (M, 2, N + 1) the
+        ground on each segment's left and right border (the coupled surface,
+        coupled_surface.py; ``mean`` is then halfway between them): height_at then
+        interpolates in azimuth between them, as the labels do."""
         if std is None and compute_std is None:
             raise ValueError('GroundSurface needs std or compute_std')
         self._r_min = np.asarray(segment_r_min, dtype=np.float64)
@@ -102,6 +106,7 @@ class GroundSurface:
         self._compute_offset = compute_offset
         self._pose = pose
         self._compiled = bool(compiled)
+        self._borders = None if borders is None else np.asarray(borders, dtype=np.float64)
 
     @classmethod
     def empty(cls, num_segments: int, num_bins: int) -> 'GroundSurface':
@@ -222,8 +227,11 @@ class GroundSurface:
         (uniformly) is off the centre by a std of s / (2 sqrt 3). A single raised or lowered
         neighbour (a fit bent by an obstacle, the noise of two independent fits on flat ground),
         a missing neighbour and a segment without support (at the prior, whose std sigma_f
-        says it) add nothing.
+        says it) add nothing. The coupled surface (``borders``) follows the ground across the
+        segment itself: nothing either.
         """
+        if self._borders is not None:
+            return np.zeros(self._mean.shape)
         return _across_segment_std(self.r, self._level_z, self._segment_supported)
 
     @cached_property
@@ -307,11 +315,28 @@ class GroundSurface:
         for values, out in ((self._level_z, z_out), (self.z_std, std_out)):
             low = values[seg, bins]
             out[inside] = low + frac * (values[seg, bins + 1] - low)
+        if self._borders is not None:  # between the segment's two borders, as the labels
+            z_out[inside] = self._between_borders(x[inside], y[inside], seg, bins, frac)
         return z_out.reshape(shape), std_out.reshape(shape)
+
+    def _between_borders(self, x, y, seg, bins, frac):
+        """The coupled surface's height (plus the ground offset) at points of segments
+        ``seg``, bins ``bins`` and positions ``frac`` in them: linear along r on the segment's
+        two borders, then in azimuth between them (coupled_surface.py)."""
+        offset = self.ground_offset
+        offset = (np.broadcast_to(offset, self._mean.shape) if np.ndim(offset) else
+                  np.full(self._mean.shape, float(offset)))
+        sides = []
+        for side in (0, 1):
+            values = self._borders[:, side] + offset
+            low = values[seg, bins]
+            sides.append(low + frac * (values[seg, bins + 1] - low))
+        w = (np.arctan2(y, x) + np.pi) * (self.num_segments / (2.0 * np.pi)) - seg
+        return sides[0] + np.clip(w, 0.0, 1.0) * (sides[1] - sides[0])
 
 
 def frame_surface(model, grid, edges, mean, std, z, ground, z_hat, k_star, pose,
-                  compiled: bool = True) -> GroundSurface:
+                  compiled: bool = True, borders=None) -> GroundSurface:
     """The GroundSurface of one frame from its ``predict.GroundModel``, RadialGrid ``grid``,
     the (M, N + 1) bin ``edges`` and the posterior ``mean`` and ``std`` there (None: computed
     from the prediction's ``k_star`` when first read), and the valid points' heights ``z``,
@@ -339,7 +364,7 @@ def frame_surface(model, grid, edges, mean, std, z, ground, z_hat, k_star, pose,
     return GroundSurface(grid.segment_r_min, grid.bin_width, grid.count.sum(axis=1) > 0, mean,
                          model.training.any(axis=1), std,
                          compute_std if std is None else None, compute_offset, pose,
-                         compiled=compiled)
+                         compiled=compiled, borders=borders)
 
 
 @lru_cache(maxsize=8)

@@ -586,6 +586,7 @@ def test_length_factor_smoothing_keeps_a_ramp_seen_from_a_high_mount():
     assert scores[True, False][0] >= 0.986
     assert scores[True, False][0] > scores[False, False][0] + 0.002
     assert scores[True, False][1] < 0.8 * scores[False, False][1]
-    assert scores[True, True][0] >= 0.988 and scores[True, True][0] > scores[False, True][0] + 0.002
+    assert scores[True, True][0] >= 0.988
+    assert scores[True, True][0] > scores[False, True][0] + 0.002
     stationary = score()
     assert stationary[0] >= 0.993 and stationary[1] < scores[True, True][1]

@@ -15,6 +15,7 @@ import threading
 import pytest
 from conftest import start_module, wait_for
 
+from gp_ground_segmentation import SegmenterParams
 from gp_ground_segmentation.ros.node import OUTPUT_QOS
 
 LIFECYCLE_MODULE = 'gp_ground_segmentation.ros.lifecycle'
@@ -137,7 +138,7 @@ def test_every_transition_through_the_services(kitti_msgs, lifecycle):
     node = h.node
     assert h.state() == 'unconfigured'
     assert h.ours(node.publishers) == [] and h.ours(node.subscriptions) == []
-    assert node.get_parameter('ground_threshold_m').value == 0.2  # declared already
+    assert node.get_parameter('ground_threshold_m').value == SegmenterParams().ground_threshold_m
 
     assert h.transition('configure') and h.state() == 'inactive'
     assert h.ours(node.publishers) == ['/diagnostics', '/ground', '/ground_surface',

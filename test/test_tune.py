@@ -21,6 +21,7 @@ from gp_ground_segmentation.tools import tune  # noqa: E402
 
 LABELED = DATA / 'labeled'
 SEQ00 = LABELED / 'semantickitti_seq00_000000.bin'
+SEQ04, SEQ06 = (LABELED / f'semantickitti_seq{n}_000000.bin' for n in ('04', '06'))
 SPVNAS = DATA / 'kitti_sequnknown_spvnas_000000.bin'
 RELLIS = LABELED / 'rellis3d_examplebundle_000001.bin'
 
@@ -220,11 +221,13 @@ def test_a_tuned_set_below_the_defaults_is_not_presented_as_an_improvement(tmp_p
     from gp_ground_segmentation.ros.config import load_params_file
     from gp_ground_segmentation.tools.cli import main
     out = tmp_path / 'p.yaml'
-    assert main(['tune', str(SEQ00), str(SPVNAS), '--trials', '3', '--out', str(out)]) == 0
+    # a study that ends below the defaults: sequences 04 and 06, 3 trials
+    assert main(['tune', str(SEQ04), str(SEQ06), '--trials', '3', '--out', str(out)]) == 0
     captured = capsys.readouterr()
     tuned, defaults = (float(v) for v in re.search(
         r'CV F1: tuned ([\d.]+), defaults ([\d.]+)', captured.out).groups())
-    # measured 2026-12-01: 0.9744 vs 0.9747 (the issue's case)
+    # measured 2026-12-01: 0.9832 vs 0.9836 (the issue's case was 0.9744 vs 0.9747 on 00 and
+    # the spvnas scan under the earlier defaults)
     assert tuned <= defaults, 'this study no longer ends below the defaults: pick another'
     assert f'not an improvement: the tuned set scores {tuned:.4f} cross-validated F1 against ' \
            f'{defaults:.4f} for the defaults' in captured.out
@@ -237,7 +240,7 @@ def test_a_tuned_set_below_the_defaults_is_not_presented_as_an_improvement(tmp_p
     assert re.search(r'The tuned values, not set: \w+: ', comments)
     assert load_params_file(out)[0] == SegmenterParams()
     # --write-tuned writes them, still saying what they are
-    assert main(['tune', str(SEQ00), str(SPVNAS), '--trials', '3', '--out', str(out), '--force',
+    assert main(['tune', str(SEQ04), str(SEQ06), '--trials', '3', '--out', str(out), '--force',
                  '--write-tuned']) == 0
     assert 'NOT AN IMPROVEMENT' in out.read_text()
     assert load_params_file(out)[0] != SegmenterParams()

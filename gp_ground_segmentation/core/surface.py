@@ -349,12 +349,13 @@ def frame_surface(model, grid, edges, mean, std, z, ground, z_hat, k_star, pose,
         std = np.full(edges.shape, model.theta[0])  # the prior std where no GP segment is
         if model.solution is None:
             return std
-        if k_star is None:  # no per-segment prediction ran (the coupled surface): run it now
-            return ground_at_bin_edges(model, edges, True, compiled)[1]
+        kernel = k_star
+        if kernel is None:  # no per-segment prediction ran (the coupled surface): run it now
+            kernel = ground_at_bin_edges(model, edges, False, compiled)[3]
         numpy_solution = model.gp.backend != 'numba' or model.solution.gradient is None
         limit = numpy_blas_limit() if numpy_solution else contextlib.nullcontext()
         with limit, np.errstate(over='ignore'):
-            std[model.gp.segments] = model.gp.std_from_kernel(model.solution, k_star)
+            std[model.gp.segments] = model.gp.std_from_kernel(model.solution, kernel)
         return std
 
     def compute_offset():

@@ -106,9 +106,9 @@ SEARCH_SPACE = (
                 'start of the GP noise std (first frame); must be >= sigma_n_min_m'),
     SearchRange('num_bins', 16, 36, 4,
                 'radial bins per segment: resolution of the ground profile vs cost'),
-    SearchRange('length_factor_smoothing_passes', 0, 10, 1,
-                'smoothing of the length scales along a segment; 0 = the paper\'s raw d_i',
-                switch='use_length_factor_smoothing'),
+    SearchRange('structure_rise_m', 0.15, 0.35, 0.01,
+                'height over the ground that makes a point a column of the structure test; '
+                'above curb height'),
 )
 
 

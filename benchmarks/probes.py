@@ -7,6 +7,8 @@ Usage::
     python benchmarks/probes.py perturbed [--set ...] [--no-write]
     python benchmarks/probes.py nonrepetitive [--set ...] [--no-write]
     python benchmarks/probes.py high-mount [--set ...] [--no-write]
+    python benchmarks/probes.py length-scale [--set ...] [--no-write]
+    python benchmarks/probes.py ceiling [--set ...] [--no-write]
 
 Each subcommand writes its own RESULTS.md section unless ``--no-write`` or ``--set`` (this
 project's parameters changed over the defaults: not the record of the defaults). Scoring:
@@ -44,6 +46,18 @@ pattern is not a model of a real rosette.
 0.4, 1.73, 3.0 and 4.5 m mounts (a truck, a mast): F1 vs Patchwork++ given the height, this
 project's missed ground split by the stage that dropped it (structure or height test), and the
 training candidates rejected as outliers.
+
+``length-scale`` (~20 s): the paper's non-stationary length scale (eqs. 8, 12) measured on every
+labelled real scan, cold: the learned theta and the share of training candidates at each clip
+of d (``min_length_factor`` / ``max_length_factor``) with the paper's length scale, and the F1
+under both protocols of the defaults (one length factor), the paper's d clipped as shipped, the
+paper's d unclipped (d_max 100) and with the gain's bound raised to 50.
+
+``ceiling`` (~15 s): what a perfect ground surface would give this labelling (not a method: the
+surface comes from the labels): z_hat of every point the 10th percentile of the labelled
+ground's z within 0.5 m, then the same threshold, structure test and free space as the
+defaults, pooled over the SemanticKITTI scans under both protocols, beside the defaults and
+Patchwork++.
 """
 
 from __future__ import annotations
@@ -499,10 +513,128 @@ def run_high_mount(args, params) -> int:
     return 0
 
 
+# ------------------------------------------------------------------------------ length scale
+
+LENGTH_SCALE_VARIANTS = (
+    ('defaults (one length factor)', {}),
+    ("paper's d, clipped to [0.05, 2]", dict(use_nonstationary_length_scale=True)),
+    ("paper's d unclipped (d_max 100)",
+     dict(use_nonstationary_length_scale=True, max_length_factor=100.0)),
+    ("paper's d, gain bound 50", dict(use_nonstationary_length_scale=True,
+                                      length_scale_gain_max=50.0)),
+)
+
+
+def _protocol_metrics(mask, classes, ontology):
+    """{protocol name: metrics} of a mask against a scan's labels under both protocols."""
+    return {protocol.name: truth_metrics(mask, *ground_truth_from_labels(classes, ontology,
+                                                                         protocol))
+            for protocol in bench_quality.PROTOCOLS}
+
+
+def run_length_scale(args, params) -> int:
+    """``probes.py length-scale``: the paper's non-stationary length scale, measured."""
+    rows, pooled = [], {}
+    for name, points, classes, ontology, _, _ in real_scans():
+        paper = GroundSegmenter(params.replace(use_nonstationary_length_scale=True))
+        result = paper.segment(points, details=True)
+        d = result.details.length_scale[result.details.training] / result.hyperparameters.gain
+        p = params
+        at_high = np.mean(d >= p.max_length_factor * (1 - 1e-12))
+        at_low = np.mean(d <= p.min_length_factor * (1 + 1e-12))
+        theta = ' / '.join(f'{v:.3f}' for v in result.hyperparameters)
+        scores = []
+        for label, change in LENGTH_SCALE_VARIANTS:
+            mask = GroundSegmenter(params.replace(**change)).segment(points).ground_mask
+            by_protocol = _protocol_metrics(mask, classes, ontology)
+            if ontology is SEMANTIC_KITTI:
+                for proto, m in by_protocol.items():
+                    pooled.setdefault((label, proto), []).append(m)
+            scores.append(' / '.join(f'{m["f1"]:.4f}' for m in by_protocol.values()))
+        rows.append([name, theta, f'{at_low:.2f} / {at_high:.2f}', f'{np.median(d):.2f}',
+                     *scores])
+        print(' | '.join(rows[-1]), flush=True)
+    totals = ['SemanticKITTI pooled', '', '', '']
+    for label, _ in LENGTH_SCALE_VARIANTS:
+        totals.append(' / '.join(f'{pooled_metrics(pooled[label, p.name])["f1"]:.4f}'
+                                 for p in bench_quality.PROTOCOLS))
+    rows.append(totals)
+    report_probe(
+        args, 'probe_length_scale',
+        "The paper's non-stationary length scale (`probes.py length-scale`)",
+        'Cold, one scan per row. theta (sigma_f m / gain a / sigma_n m) and the clip shares '
+        "are the paper's length scale's (`use_nonstationary_length_scale` true, d clipped to "
+        '[min_length_factor, max_length_factor] = [0.05, 2]), over the candidates that trained '
+        'the GP. F1 under vegetation-nonground / patchworkpp.',
+        ['scan', 'theta (paper d)', 'share of d at lower / upper clip', 'median d',
+         *[f'F1: {label}' for label, _ in LENGTH_SCALE_VARIANTS]], rows)
+    return 0
+
+
+# ------------------------------------------------------------------------------------ ceiling
+
+CEILING_RADIUS_M = 0.5
+CEILING_QUANTILE = 10
+
+
+def label_surface(points, truth, z_hat):
+    """Per point: the CEILING_QUANTILE-th percentile of the labelled ground's z within
+    CEILING_RADIUS_M horizontally (``z_hat`` where no labelled ground is that near)."""
+    ground = np.flatnonzero(truth)
+    tree = cKDTree(points[ground, :2])
+    distance, index = tree.query(points[:, :2], k=16, distance_upper_bound=CEILING_RADIUS_M)
+    near = np.isfinite(distance)
+    heights = np.where(near, points[ground[np.minimum(index, ground.size - 1)], 2], np.nan)
+    has = near.any(axis=1)
+    out = np.asarray(z_hat, dtype=np.float64).copy()
+    out[has] = np.nanpercentile(heights[has], CEILING_QUANTILE, axis=1)
+    return out
+
+
+def ceiling_mask(points, truth, params):
+    """The defaults' labelling (threshold, structure test, free space) on the labels' surface."""
+    from gp_ground_segmentation.core.structure import structure_feet
+    result = GroundSegmenter(params).segment(points)
+    valid = result.valid_mask
+    xyz = np.asarray(points[valid, :3], dtype=np.float32)
+    surface = label_surface(xyz, truth[valid], result.ground_height[valid]).astype(np.float32)
+    ground = xyz[:, 2] - surface <= params.ground_threshold_m
+    feet = structure_feet(params, xyz[:, 0], xyz[:, 1], xyz[:, 2], surface, ground)
+    mask = np.zeros(len(points), dtype=bool)
+    mask[np.flatnonzero(valid)] = ground & ~feet
+    return mask, result.ground_mask
+
+
+def run_ceiling(args, params) -> int:
+    """``probes.py ceiling``: this labelling on a perfect (label-derived) ground surface."""
+    sums = {}
+    for name, points, classes, ontology, _, _ in real_scans():
+        if ontology is not SEMANTIC_KITTI:
+            continue
+        ceiling, ours = ceiling_mask(points, ground_truth_from_labels(classes)[0], params)
+        for label, mask in (("this labelling on the labels' surface", ceiling),
+                            ('defaults', ours)):
+            for proto, m in _protocol_metrics(mask, classes, ontology).items():
+                sums.setdefault((label, proto), []).append(m)
+    rows = [[label, *(' / '.join(f'{v:.4f}' for v in (m['precision'], m['recall'], m['f1']))
+                      for m in (pooled_metrics(sums[label, p.name])
+                                for p in bench_quality.PROTOCOLS))]
+            for label in dict.fromkeys(k[0] for k in sums)]
+    report_probe(
+        args, 'probe_ceiling', 'A perfect ground surface under this labelling (`probes.py '
+        'ceiling`)',
+        f'Cold, the SemanticKITTI scans pooled. The surface of the first row comes from the '
+        f"labels (the {CEILING_QUANTILE}th percentile of the labelled ground's z within "
+        f'{CEILING_RADIUS_M} m of each point): a bound on what a better surface model could give '
+        'with the same threshold, structure test and free space, not a method. P / R / F1.',
+        ['ground surface', *(p.name for p in bench_quality.PROTOCOLS)], rows)
+    return 0
+
+
 # ------------------------------------------------------------------------------------ main
 
 PROBES = {'errors': run_errors, 'perturbed': run_perturbed, 'nonrepetitive': run_nonrepetitive,
-          'high-mount': run_high_mount}
+          'high-mount': run_high_mount, 'length-scale': run_length_scale, 'ceiling': run_ceiling}
 
 
 def main(argv=None) -> int:

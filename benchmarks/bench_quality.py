@@ -266,9 +266,8 @@ def ablation_variants() -> dict:
     * OLS instead of Deming: lambda = var(z err) / var(r err) -> infinity makes the Deming slope
       (d + sqrt(d^2 + 4 lambda s_rz^2)) / (2 s_rz), d = s_zz - lambda s_rr, tend to s_rz / s_rr,
       the ordinary least-squares fit of z on r; the range allows 1e4.
-    * constant L: min_length_factor just below max_length_factor (equal is rejected), so every
-      d_i is clipped to one value and L = a d is the same everywhere; when the defaults are
-      already that, the paper's non-stationary L instead (d_i in [0.05, 2]);
+    * the length scale: the paper's non-stationary one or one length factor is the
+      ``use_nonstationary_length_scale`` switch (below, with the other bools);
     * theta frozen: no marginal-likelihood evaluations at all, theta stays at its initial value;
     * every bool field of SegmenterParams (``use_*`` switches and others) flipped, discovered at
       run time so that new switches appear without code changes.
@@ -276,11 +275,6 @@ def ablation_variants() -> dict:
     d = SegmenterParams()
     out = {
         'OLS lines (deming_variance_ratio=1e4)': {'deming_variance_ratio': 1e4},
-        **({'constant L (min_length_factor=0.999*max)': {
-            'min_length_factor': 0.999 * d.max_length_factor}}
-           if d.min_length_factor < 0.9 * d.max_length_factor else
-           {'non-stationary L (min_length_factor=0.05, max_length_factor=2)': {
-               'min_length_factor': 0.05, 'max_length_factor': 2.0}}),
         'theta frozen (0 optimizer evaluations)': {'optimizer_first_frame_evaluations': 0,
                                                    'optimizer_max_evaluations': 0},
     }

@@ -85,13 +85,10 @@ def test_ablation_switches_every_bool_field_and_each_paper_component():
             assert getattr(variants[f'{f.name}={not f.default}'], f.name) is (not f.default)
     frozen = [p for n, p in variants.items() if n.startswith('theta frozen')][0]
     assert frozen.optimizer_max_evaluations == 0 == frozen.optimizer_first_frame_evaluations
-    # the defaults hold L constant (chosen by cross-validation): the variant is the paper's
-    # non-stationary L; with non-stationary defaults it would be constant L
-    (name, length), = [(n, p) for n, p in variants.items()
-                       if n.startswith(('constant L', 'non-stationary L'))]
-    constant_default = defaults.min_length_factor >= 0.9 * defaults.max_length_factor
-    assert name.startswith('non-stationary' if constant_default else 'constant')
-    assert (length.min_length_factor < 0.1 * length.max_length_factor) is constant_default
+    # the length scale is a switch like the others: its variant is the other kind
+    name = f'use_nonstationary_length_scale={not defaults.use_nonstationary_length_scale}'
+    assert variants[name].use_nonstationary_length_scale is not (
+        defaults.use_nonstationary_length_scale)
     ols = [p for n, p in variants.items() if n.startswith('OLS')][0]
     # A very large variance ratio makes the Deming slope the least-squares slope of z on r.
     rng = np.random.default_rng(0)

@@ -8,16 +8,21 @@ The stages of :meth:`GroundSegmenter._segment` (the keys of ``SegmentationResult
               candidate, rho~ (grid.py).
 ``lines``     [paper] Algorithm 1 per segment; candidates on steep lines do not train (lines.py).
               [ours] chord slopes of one-point lines (lines.py), elevated plateaus (plateau.py).
-``gp_fit``    [paper] length factors by eq. 12 (length_factors.py), the whole-frame GP and theta
-              learned on its marginal likelihood (gp.py). [ours] rho~ normalised per range ring
-              and d smoothed along the segment (length_factors.py), the ground under the
-              vehicle as a shared training point and prior mean (anchor.py), leave-one-out
-              outlier rejection before and after learning (outliers.py), learning only on every
-              ``optimizer_interval_frames``-th frame of a stream.
-``predict``   [paper] the posterior ground height at every bin edge (predict.py).
-``label``     [paper] the label rule on the ground height interpolated to each point. [ours] the
-              threshold widened by the GP std and the cross-slope rise (labels.py).
-``structure`` [ours] the feet of vertical structures become obstacles (structure.py).
+``gp_fit``    [paper] length factors by eq. 12 (length_factors.py; off by default, one length
+              factor for every candidate: ``use_nonstationary_length_scale``), the whole-frame
+              GP and theta learned on its marginal likelihood (gp.py). [ours] rho~ normalised
+              per range ring and d smoothed along the segment (length_factors.py), the ground
+              under the vehicle as a shared training point and prior mean (anchor.py),
+              leave-one-out outlier rejection before and after learning (outliers.py), learning
+              only on every ``optimizer_interval_frames``-th frame of a stream.
+``predict``   [paper] the posterior ground height at every bin edge (predict.py). [ours] the
+              coupled surface: the ground on every border between two segments from a GP over
+              both segments' candidates at their (x, y) (coupled_surface.py).
+``label``     [paper] the label rule on the ground height interpolated to each point (with the
+              coupled surface: between its segment's borders). [ours] the threshold widened by
+              the GP std and the cross-slope rise (labels.py).
+``structure`` [ours] the feet of vertical structures become obstacles (structure.py), but for
+              those under which the sensor saw free space (free_space.py).
 
 The ground surface output (surface.py) is built from the same arrays, its extras when read. A
 cloud not in the sensor's own frame is first moved into the levelled sensor frame with the

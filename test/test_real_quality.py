@@ -2,7 +2,7 @@
 """Ground precision/recall on every labelled real scan of ../shared/data, cold, defaults.
 
 Thresholds sit 0.005 below what was measured (benchmarks/bench_quality.py, RESULTS.md section
-"Ground quality", per frame, cold, 2026-11-26): a regression of half a point fails. The
+"Ground quality", per frame, cold, 2026-12-01): a regression of half a point fails. The
 structure test's own gain is checked against the same scan segmented without it. Skipped
 when the data is absent.
 """
@@ -19,11 +19,11 @@ from scenes.real_data import labelled_scan
 
 # scan (scenes.real_data) -> (measured precision, measured recall)
 SCANS = {
-    'kitti08_000000': (0.978, 0.969),  # the spvnas scan
-    'kitti00_000000': (0.968, 0.982),
-    'kitti00_000001': (0.963, 0.980),
-    'kitti00_000002': (0.954, 0.977),
-    'rellis3d_000001': (0.939, 0.966),
+    'kitti08_000000': (0.973, 0.977),  # the spvnas scan
+    'kitti00_000000': (0.956, 0.995),
+    'kitti00_000001': (0.948, 0.995),
+    'kitti00_000002': (0.939, 0.995),
+    'rellis3d_000001': (0.927, 0.976),
 }
 TOLERANCE = 0.005
 
@@ -51,28 +51,29 @@ def test_real_scan_precision_and_recall(name):
     assert m['recall'] >= recall - TOLERANCE, m
 
 
-@pytest.mark.parametrize('name,gain', [('kitti00_000000', 0.021), ('rellis3d_000001', 0.010)])
+@pytest.mark.parametrize('name,gain', [('kitti00_000000', 0.033), ('rellis3d_000001', 0.015)])
 def test_structure_test_earns_its_place(name, gain):
-    # measured F1: KITTI 00 frame 0 0.954 -> 0.975, RELLIS 0.943 -> 0.953; the precision gain
-    # outweighs the recall it costs (the ground within a few cm of wall and car feet)
+    # measured F1: KITTI 00 frame 0 0.942 -> 0.975, RELLIS 0.936 -> 0.951; the precision gain
+    # (+0.065, +0.040) outweighs the recall it costs (-0.004, -0.014: the ground at wall and car
+    # feet; free space gives the ground under overhangs back)
     points, truth = load(name)
     on = score(points, truth)
     off = score(points, truth, SegmenterParams(use_vertical_structure_test=False))
     assert on['f1'] - off['f1'] >= gain - TOLERANCE, (on, off)
-    assert on['precision'] > off['precision'] + 0.02
+    assert on['precision'] > off['precision'] + 0.03
     assert np.isfinite(on['recall']) and on['recall'] > off['recall'] - 0.02
 
 
 # The same scans made to look like other sensors (benchmarks/probes.py perturbed; measured F1,
-# 2026-11-27): every 2nd / 4th ring = a 32- / 16-beam LiDAR with the same field of view, and a
+# 2026-12-01): every 2nd / 4th ring = a 32- / 16-beam LiDAR with the same field of view, and a
 # 6 cm voxel filter (first point per voxel). RELLIS-3D is organised: a ring is a row of 2048.
 PERTURBED_F1 = {
-    ('kitti08_000000', 'ring2'): 0.974, ('kitti08_000000', 'ring4'): 0.960,
-    ('kitti08_000000', 'voxel'): 0.962,
-    ('kitti00_000000', 'ring2'): 0.969, ('kitti00_000000', 'ring4'): 0.956,
-    ('kitti00_000000', 'voxel'): 0.964,
-    ('rellis3d_000001', 'ring2'): 0.946, ('rellis3d_000001', 'ring4'): 0.946,
-    ('rellis3d_000001', 'voxel'): 0.936,
+    ('kitti08_000000', 'ring2'): 0.974, ('kitti08_000000', 'ring4'): 0.967,
+    ('kitti08_000000', 'voxel'): 0.963,
+    ('kitti00_000000', 'ring2'): 0.967, ('kitti00_000000', 'ring4'): 0.952,
+    ('kitti00_000000', 'voxel'): 0.962,
+    ('rellis3d_000001', 'ring2'): 0.941, ('rellis3d_000001', 'ring4'): 0.942,
+    ('rellis3d_000001', 'voxel'): 0.932,
 }
 
 

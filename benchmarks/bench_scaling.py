@@ -214,7 +214,10 @@ def size_section(args, frames, sizes, params) -> str:
         ['stage', 'slope of log(ms) vs log(points), all sizes', 'slope, >= 100k points'],
         slope_rows)
     fixed, per_point, worst = linear_fit(sizes, totals)
-    return (f'{size_table}\n\n{slope_table}\n\nLinear fit total ms = a + b * points over all '
+    print(slope_table)  # every stage's slope printed; RESULTS.md keeps the total's
+    return (f'{size_table}\n\nSlope of log(total ms) vs log(points): {slope_rows[0][1]} over all '
+            f'sizes, {slope_rows[0][2]} from 100k points (1 = cost linear in the points).\n\n'
+            f'Linear fit total ms = a + b * points over all '
             f'sizes: a = {common.fmt(fixed, 1)} ms (per-frame fixed cost), b = '
             f'{common.fmt(per_point * 1e6, 1)} ns per point; largest relative residual '
             f'{common.fmt(100 * worst, 0)} % (small = cost linear in the points).')

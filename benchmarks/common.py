@@ -545,9 +545,7 @@ def machine_markdown(command: str) -> str:
             f'- Machine: {m["nproc"]} CPUs ({m["cpu"]}), load average at start '
             f'{m["load_average"]}; '
             f'Python {m["python"]}, numpy {m["numpy"]}, scipy {m["scipy"]}, '
-            f'pypatchworkpp {m["pypatchworkpp"]}, linefit {m["linefit"]}\n'
-            '- The machine is shared with other jobs (the load average above says how busy it '
-            'was): absolute times are noisy; compare methods only as ratios within one run.\n')
+            f'pypatchworkpp {m["pypatchworkpp"]}, linefit {m["linefit"]}\n')
 
 
 def command_line() -> str:
@@ -584,5 +582,7 @@ def update_results_section(path: Path, section: str, text: str) -> None:
 RESULTS_HEADER = """# Benchmark results
 
 Written by the scripts in `benchmarks/` (each owns one section below; rerun a script to refresh
-its section). See `benchmarks/README.md` for what each measures and how.
+its section). See `benchmarks/README.md` for what each measures and how. The machine is shared
+with other jobs (each section's load average says how busy it was): absolute times are noisy;
+compare methods only as ratios within one run.
 """

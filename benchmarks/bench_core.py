@@ -212,7 +212,7 @@ def main(argv=None):
         build_us = surface_construction_us(frames[0], params)
         read = {k: common.summary_ms(np.asarray(v) / 1e3) for k, v in surf.items()}
         lines.append(
-            f"- Ground surface (issue 11), same streaming run: segment() builds only a lazy "
+            f"- Ground surface, same streaming run: segment() builds only a lazy "
             f"GroundSurface ({build_us:.1f} us, timeit, = {build_us / 1e3 / wall_med * 100:.3f}"
             f" % of the median segment() wall time, below this machine's noise); reading it "
             f"after segment() as the node publishes it (z_std + supported points) median "

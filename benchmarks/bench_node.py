@@ -649,7 +649,7 @@ def latency_markdown(r: dict) -> str:
         '',
         frames_table(r, {'sustained 10 Hz, no drops (after warm-up)': verdict}),
         '',
-        f"- Target (issue 6): decode + segment + encode <= 35 ms median: measured "
+        f"- Target: decode + segment + encode <= 35 ms median: measured "
         f"{fmt(med_total)} ms -> {'met' if med_total <= 35.0 else 'NOT met'}; sustains 10 Hz "
         f"with no drops: {verdict}.",
         f"- The first frame (cold start: theta learned with up to 40 likelihood evaluations) "
@@ -706,7 +706,7 @@ def load_markdown(r: dict) -> str:
         '- Messages received by the subscriber processes (per process, sorted): '
         + '; '.join(f"{t} {', '.join(str(c) for c in received[t])}"
                     for t in topics) + '.',
-        f"- Targets (issue 14): no drops after warm-up: {'met' if no_drops else 'NOT met'}; "
+        f"- Targets: no drops after warm-up: {'met' if no_drops else 'NOT met'}; "
         f"node_total p95 <= 50 ms: {fmt(node_total[1])} ms -> "
         f"{'met' if node_total[1] <= 50.0 else 'NOT met'}; around segment() <= 3 ms median: "
         f"{fmt(around[0])} ms -> {'met' if around[0] <= 3.0 else 'NOT met'}.",

@@ -1,5 +1,6 @@
 # SPDX-License-Identifier: Apache-2.0
-"""The README stays true: its parameter table is the code's, its commands name real things."""
+"""The README and docs/ stay true: the parameter table is the code's, the commands name real
+things, the quoted results are RESULTS.md's."""
 
 import json
 import re
@@ -12,12 +13,13 @@ from gp_ground_segmentation.ros.config import render_params_table
 from gp_ground_segmentation.core.params import describe_params
 
 README = Path(__file__).resolve().parents[1] / 'README.md'
+DOCS = README.parent / 'docs'
 
 
 def test_parameter_table_matches_the_code():
-    text = README.read_text()
+    text = (DOCS / 'parameters.md').read_text()
     assert render_params_table().strip() in text, (
-        'README parameter table is stale: paste render_params_table() output')
+        'docs/parameters.md parameter table is stale: paste render_params_table() output')
     for row in describe_params():
         assert f"`{row['name']}`" in text
 
@@ -65,7 +67,7 @@ def test_readme_names_the_launch_file():
 
 
 RESULTS = README.parent / 'benchmarks' / 'RESULTS.md'
-TRIPLE = r'\d\.\d{3} / \d\.\d{3} / \d\.\d{3}'
+TRIPLE = r'\d\.\d{3,4} / \d\.\d{3,4} / \d\.\d{3,4}'  # P / R / F1
 
 
 def _section(text, start, end):
@@ -96,12 +98,11 @@ def _quality_deltas():
     return deltas
 
 
-def test_readme_ablation_numbers_are_the_ones_in_results():
-    # Every row of the README's ablation table names a bench_quality variant column; its mean
-    # and per-group F1 changes must be what RESULTS.md's bench_quality section says.
+def test_method_page_ablation_numbers_are_the_ones_in_results():
+    # Every row of docs/method.md's ablation table names a bench_quality variant column; its
+    # mean and per-group F1 changes must be what RESULTS.md's bench_quality section says.
     deltas = _quality_deltas()
-    readme = README.read_text()
-    table = _section(readme, '| part | from | variant (bench_quality)', '\n\n')
+    table = _section((DOCS / 'method.md').read_text(), '| part | from | variant (bench_quality)', '\n\n')
     rows = [r for r in _table_rows(table)[2:]]
     assert len(rows) >= 14
     for part, _origin, variant, mean, largest in rows:
@@ -116,17 +117,38 @@ def test_readme_ablation_numbers_are_the_ones_in_results():
             assert deltas[column, group] == delta, (part, group, delta)
 
 
-def test_readme_results_table_is_bench_quality():
-    # The headline quality table quotes bench_quality's pooled cold rows verbatim.
+def _assert_quotes_bench_quality(table, least):
+    # Each (this project, Patchwork++) pair of P / R / F1 triples of a row must stand side by
+    # side in one row of RESULTS.md's cold bench_quality tables.
     quality = _section(RESULTS.read_text(), '<!-- BEGIN bench_quality -->',
-                       '### Every method, streamed')
-    table = _section(README.read_text(), '| data (frames) | this project |', '\n\n')
-    triples = re.findall(TRIPLE, table)
-    assert len(triples) >= 40
+                       '### Every method, streamed').replace('**', '')
+    assert len(re.findall(TRIPLE, table)) >= least
     for cells in _table_rows(table)[2:]:
         found = re.findall(TRIPLE, ' | '.join(c.strip('*') for c in cells[1:]))
-        if found:
-            assert ' | '.join(found) in quality.replace('**', ''), cells[0]
+        assert len(found) % 2 == 0, cells[0]
+        for ours, theirs in zip(found[::2], found[1::2]):
+            assert f'{ours} | {theirs}' in quality, cells[0]
+
+
+def test_readme_results_table_is_bench_quality():
+    # The headline quality table quotes bench_quality's pooled cold rows verbatim, both
+    # protocols, this project beside Patchwork++.
+    _assert_quotes_bench_quality(_section(README.read_text(), '| data (frames) |', '\n\n'), 30)
+
+
+def test_results_page_per_scan_table_is_bench_quality():
+    table = _section((DOCS / 'results.md').read_text(), '| scan | vegetation-nonground', '\n\n')
+    _assert_quotes_bench_quality(table, 32)
+
+
+def test_readme_links_resolve():
+    # Every relative link of the README and docs/ names a file of the repository.
+    checked = 0
+    for page in [README, *sorted(DOCS.glob('*.md'))]:
+        for target in re.findall(r'\]\(([^)#:]+)(?:#[^)]*)?\)', page.read_text()):
+            assert (page.parent / target).exists(), (page.name, target)
+            checked += 1
+    assert checked >= 20  # the README links every docs page, the pages link each other
 
 
 def test_python_api_block_runs_as_written():

@@ -2,7 +2,8 @@
 """gp-ground-seg tune: Optuna search on the real labelled scans, with a CI-sized budget.
 
 Checks: the search space is a documented subset with ranges inside (and narrower than) the
-validity ranges, defaults on its grid, and its README table up to date; a tiny study on two real
+validity ranges, defaults on its grid, and its
+table in docs/parameters.md up to date; a tiny study on two real
 frames of two scenes (on a 2-process Dask LocalCluster) reports leave-one-scene-out CV F1 of the
 tuned set and the defaults, never scores the tuned set below the defaults on its training frames,
 and writes a parameter file with only changed keys that load_params_file, `replay --params` and
@@ -53,9 +54,10 @@ def test_search_space_is_a_narrower_documented_subset():
     assert SegmenterParams().replace(**tune.as_params(searched_defaults)) == defaults
 
 
-def test_readme_has_the_generated_search_space_table():
-    readme = (REPO / 'README.md').read_text()
-    assert tune.render_search_space_table() in readme
+def test_parameters_page_has_the_generated_search_space_table():
+    page = (REPO / 'docs' / 'parameters.md').read_text()
+    assert tune.render_search_space_table() in page, (
+        'docs/parameters.md search-space table is stale: paste render_search_space_table() output')
 
 
 @needs_data

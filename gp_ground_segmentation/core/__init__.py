@@ -7,8 +7,10 @@ candidates, rho~), ``lines`` (Algorithm 1 and the steep-line filter), ``length_f
 12), ``paciorek`` (the kernel, eq. 7), ``gp`` (the whole-frame GP and theta, eq. 14),
 ``predict`` (the posterior at the bin edges), ``labels`` (the label rule). Ours, each with a
 ``use_*`` switch: ``plateau``, ``anchor``, ``outliers`` (with the wide-terrain rule),
-``structure``, ``surface`` (the ground surface output), and the rules marked [ours] inside
-``lines``, ``length_factors`` and ``labels``. ``segmenter`` runs them in order, ``result``
+``coupled_surface`` (the ground on the borders between segments, a 2-D GP), ``structure``
+(feet of vertical structures), ``free_space`` (feet the sensor saw under), ``surface`` (the
+ground surface output), and the rules marked [ours] inside ``lines``, ``length_factors`` and
+``labels``. ``segmenter`` runs them in order, ``result``
 holds what it returns, ``params`` every tunable; ``compiled`` compiles and runs the twins;
 ``sensor_frame`` levels clouds not in the sensor frame.
 

@@ -482,7 +482,7 @@ def render_param_overrides(values: dict, header_lines=(),
 
 
 def render_params_table() -> str:
-    """A Markdown table of every parameter (for the README)."""
+    """A Markdown table of every parameter (docs/parameters.md)."""
     out = ['| parameter | type | default | range | description |', '|---|---|---|---|---|']
     for row in describe_params() + describe_node_params():
         rng = _range_text(row).strip()

@@ -56,7 +56,8 @@ Topics (relative names): points (sub, PointCloud2, sensor-data QoS), ground and 
 PointCloud2), labeled (pub, every valid point plus ground and height_above_ground, while
 subscribed), ground_surface (pub, PointCloud2 x, y, z, z_std, while subscribed), the
 imu_topic parameter's sensor_msgs/Imu (sub, when set), /diagnostics. The clouds must be in
-the sensor's frame, or give its pose with the sensor_* parameters (README "Frames")."""
+the sensor's frame, or give its pose with the sensor_* parameters (docs/node.md, "Frames and
+gravity")."""
 
 _LIFECYCLE_NOTE = """
 

@@ -2,7 +2,8 @@
 """``gp-ground-seg tune``: search segmenter parameters on labelled scans with Optuna.
 
 * Search space: :data:`SEARCH_SPACE`, a documented subset of ``SegmenterParams`` with search
-  ranges narrower than the validity ranges (the README table is generated from it). Values lie
+  ranges narrower than the validity ranges (docs/parameters.md
+  has the table generated from it). Values lie
   on a grid (``step``) so the written YAML holds round numbers.
 * Objective: pooled ground F1 (TP/FP/FN summed over the frames, then F1) against per-point
   labels (SemanticKITTI-style ``.label``: uint32, class in the low 16 bits) with the ground and
@@ -83,7 +84,7 @@ class SearchRange:
         return round(trial.suggest_float(self.name, self.low, self.high, step=self.step), 9)
 
 
-# The one place that says what is tuned and over which range (README table generated from it).
+# The one place that says what is tuned and over which range (docs/parameters.md from it).
 SEARCH_SPACE = (
     SearchRange('ground_threshold_m', 0.08, 0.40, 0.01,
                 'height above the GP ground that still counts as ground; curbs are ~0.1-0.2 m'),
@@ -139,7 +140,7 @@ def as_params(values: dict) -> dict:
 
 
 def render_search_space_table() -> str:
-    """Markdown table of the search space (for the README)."""
+    """Markdown table of the search space (docs/parameters.md)."""
     specs = {row['name']: row for row in describe_params()}
     out = ['| parameter | default | search range (step) | validity range | why this range |',
            '|---|---|---|---|---|']
@@ -431,8 +432,9 @@ def labelled_frames(paths: Sequence[str], labels_dir: Optional[str], ground: tup
 def add_parser(sub) -> None:
     """Register ``gp-ground-seg tune``."""
     p = sub.add_parser('tune', help='search parameters on labelled scans, write params.yaml',
-                       description='Optuna search of the segmenter parameters listed in the '
-                       'README ("Many bags and tuning: batch and tune") for the best pooled '
+                       description='Optuna search of the segmenter parameters listed in '
+                       'docs/parameters.md ("What gp-ground-seg tune searches") for the best '
+                       'pooled '
                        'ground F1 on labelled scans; reports leave-one-scene-out cross-validated '
                        'F1 of the tuned set vs the defaults and writes a node parameter file '
                        'with the changed keys.')

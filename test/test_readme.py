@@ -102,7 +102,8 @@ def test_method_page_ablation_numbers_are_the_ones_in_results():
     # Every row of docs/method.md's ablation table names a bench_quality variant column; its
     # mean and per-group F1 changes must be what RESULTS.md's bench_quality section says.
     deltas = _quality_deltas()
-    table = _section((DOCS / 'method.md').read_text(), '| part | from | variant (bench_quality)', '\n\n')
+    table = _section((DOCS / 'method.md').read_text(), '| part | from | variant (bench_quality)',
+                     '\n\n')
     rows = [r for r in _table_rows(table)[2:]]
     assert len(rows) >= 14
     for part, _origin, variant, mean, largest in rows:

@@ -24,9 +24,10 @@ it takes the frame's default height, as the per-segment model's segments without
 length scale at a knot is a d of segment b's nearest training candidate (as the per-segment
 prediction takes it), else of segment b + 1's, else of the flat clip ``max_length_factor``.
 
-Cost: one Cholesky of n <= 2 N + 1 points per border and (N + 1) n kernel values (with one
-length scale for every point, the stationary kernel, three exps a training point: the knots are
-equally spaced); the posterior std stays the per-segment model's (the threshold's
+Cost: one Cholesky of n <= 2 N + 1 points per border, its kernel between the two segments (each
+segment's own block is computed once: it lies on two borders) and (N + 1) n kernel values (with
+one length scale for every point, the stationary kernel, three exps a training point: the knots
+are equally spaced); the posterior std stays the per-segment model's (the threshold's
 ``use_std_threshold`` and the surface's z_std read it).
 """
 
@@ -164,10 +165,12 @@ def _left_borders(border, edges):
 def _borders_loop(x, y, candidate_index, candidate_z, d, training, edges, gain, d_flat,
                   sigma_f, sigma_n, mean, default_height, anchor_z, anchor_var, anchor_d,
                   anchor_on):
-    """:func:`_borders_numpy` per border at its own size (compiled with numba): the points
-    gathered, the kernel, an in-place Cholesky, two triangular solves, the prediction at the
-    knots, then every segment's left border read at its edges; a border whose matrix is not
-    positive definite keeps the default height."""
+    """:func:`_borders_numpy` per border at its own size (compiled with numba): every
+    segment's training candidates and their kernel gathered once (a segment lies on two
+    borders), then per border its points, the kernel between its two segments, an in-place
+    Cholesky, two triangular solves, the prediction at the knots, then every segment's left
+    border read at its edges; a border whose matrix is not positive definite keeps the
+    default height."""
     m_count, n_count = training.shape
     n_knots = n_count + 1
     n_max = 2 * n_count + 1
@@ -176,19 +179,25 @@ def _borders_loop(x, y, candidate_index, candidate_z, d, training, edges, gain, 
     knot_l = np.empty(n_knots)
     border = np.empty((m_count, n_knots))
     sf2 = sigma_f * sigma_f
+    segment_xylz = np.empty((m_count, 4, n_count))
+    seg_n = np.empty(m_count, dtype=np.int64)
+    block_start = np.empty(m_count, dtype=np.int64)
+    blocks = np.empty(m_count * (n_count * (n_count + 1) // 2))
+    _segment_points(x, y, candidate_index, candidate_z, d, training, gain, d_flat, mean, sf2,
+                    segment_xylz, seg_n, block_start, blocks)
     width = 2.0 * math.pi / m_count
     for b in range(m_count):
         nb = b + 1 if b + 1 < m_count else 0
-        n = _gather_border(b, nb, x, y, candidate_index, candidate_z, d, training, gain,
-                           d_flat, mean, anchor_z, anchor_d, anchor_on, px, py, pl, alpha)
+        n = _gather_border(b, nb, segment_xylz, seg_n, gain, mean, anchor_z, anchor_d,
+                           anchor_on, px, py, pl, alpha)
         for k in range(n_knots):
             border[b, k] = default_height
         if n == 0:
             continue
         _fill_knot_factors(b, nb, d, training, gain, d_flat, knot_l)
+        _border_kernel(a, n, n - seg_n[b] - seg_n[nb], seg_n[b], seg_n[nb], blocks,
+                       block_start[b], block_start[nb], px, py, pl, sf2)
         for i in range(n):
-            for j in range(i + 1):
-                a[i, j] = paciorek_2d_compiled(px[i] - px[j], py[i] - py[j], pl[i], pl[j], sf2)
             a[i, i] += sigma_n * sigma_n
         if anchor_on[b] or anchor_on[nb]:
             a[0, 0] += anchor_var
@@ -210,11 +219,37 @@ def _borders_loop(x, y, candidate_index, candidate_z, d, training, edges, gain, 
     return _lattice(border, edges)
 
 
-def _gather_border(b, nb, x, y, candidate_index, candidate_z, d, training, gain, d_flat, mean,
-                   anchor_z, anchor_d, anchor_on, px, py, pl, alpha):
+def _segment_points(x, y, candidate_index, candidate_z, d, training, gain, d_flat, mean, sf2,
+                    segment_xylz, seg_n, block_start, blocks):
+    """Every segment's training candidates into ``segment_xylz`` (M, 4, N: x, y, length scale
+    a d, z minus the prior mean) and their number into ``seg_n``, and the kernel among them
+    (lower triangle row by row, from ``block_start[m]``) into ``blocks``."""
+    start = 0
+    for m in range(training.shape[0]):
+        n = 0
+        for j in range(training.shape[1]):
+            if training[m, j]:
+                i = candidate_index[m, j]
+                segment_xylz[m, 0, n] = np.float64(x[i])
+                segment_xylz[m, 1, n] = np.float64(y[i])
+                segment_xylz[m, 2, n] = gain * (d[m, j] if np.isfinite(d[m, j]) else d_flat)
+                segment_xylz[m, 3, n] = candidate_z[m, j] - mean
+                n += 1
+        seg_n[m] = n
+        block_start[m] = start
+        sx, sy, sl = segment_xylz[m, 0], segment_xylz[m, 1], segment_xylz[m, 2]
+        for i in range(n):
+            for j in range(i + 1):
+                blocks[start + j] = paciorek_2d_compiled(sx[i] - sx[j], sy[i] - sy[j], sl[i],
+                                                         sl[j], sf2)
+            start += i + 1
+
+
+def _gather_border(b, nb, segment_xylz, seg_n, gain, mean, anchor_z, anchor_d, anchor_on, px,
+                   py, pl, alpha):
     """Border b's training points into px, py, pl, alpha (z minus the prior mean): the anchor
     first when either segment has it (its length factor the mean of theirs), then segment b's
-    and segment nb's training candidates; returns their number."""
+    and segment nb's training candidates (:func:`_segment_points`); returns their number."""
     n = 0
     if anchor_on[b] or anchor_on[nb]:
         if anchor_on[b] and anchor_on[nb]:
@@ -224,14 +259,35 @@ def _gather_border(b, nb, x, y, candidate_index, candidate_z, d, training, gain,
         px[0], py[0], alpha[0] = 0.0, 0.0, anchor_z - mean
         n = 1
     for m in (b, nb):
-        for j in range(training.shape[1]):
-            if training[m, j]:
-                i = candidate_index[m, j]
-                px[n], py[n] = np.float64(x[i]), np.float64(y[i])
-                pl[n] = gain * (d[m, j] if np.isfinite(d[m, j]) else d_flat)
-                alpha[n] = candidate_z[m, j] - mean
-                n += 1
+        for j in range(seg_n[m]):
+            px[n], py[n] = segment_xylz[m, 0, j], segment_xylz[m, 1, j]
+            pl[n], alpha[n] = segment_xylz[m, 2, j], segment_xylz[m, 3, j]
+            n += 1
     return n
+
+
+def _border_kernel(a, n, o, n1, n2, blocks, start1, start2, px, py, pl, sf2):
+    """The lower triangle of border b's kernel (no noise) into a[:n, :n]: the anchor's row
+    and column (when ``o`` is 1), the two segments' own blocks copied from ``blocks`` (from
+    ``start1`` and ``start2``, :func:`_segment_points`) and the n2 x n1 block between them."""
+    for i in range(o):
+        for j in range(i + 1):
+            a[i, j] = paciorek_2d_compiled(px[i] - px[j], py[i] - py[j], pl[i], pl[j], sf2)
+    for i in range(o, n):
+        for j in range(o):
+            a[i, j] = paciorek_2d_compiled(px[i] - px[j], py[i] - py[j], pl[i], pl[j], sf2)
+    s = start1
+    for i in range(o, o + n1):
+        for j in range(o, i + 1):
+            a[i, j] = blocks[s]
+            s += 1
+    s = start2
+    for i in range(o + n1, n):
+        for j in range(o, o + n1):
+            a[i, j] = paciorek_2d_compiled(px[i] - px[j], py[i] - py[j], pl[i], pl[j], sf2)
+        for j in range(o + n1, i + 1):
+            a[i, j] = blocks[s]
+            s += 1
 
 
 def _fill_knot_factors(b, nb, d, training, gain, d_flat, knot_l):
@@ -366,6 +422,8 @@ _cholesky_solve = kernel(_cholesky_solve, inline='always', **_FAST) or _cholesky
 _one_length_scale = kernel(_one_length_scale, inline='always') or _one_length_scale
 _finite_spacing = kernel(_finite_spacing, inline='always') or _finite_spacing
 _gather_border = kernel(_gather_border, inline='always') or _gather_border
+_segment_points = kernel(_segment_points, inline='always', **_FAST) or _segment_points
+_border_kernel = kernel(_border_kernel, inline='always', **_FAST) or _border_kernel
 _fill_knot_factors = kernel(_fill_knot_factors, inline='always') or _fill_knot_factors
 _predict_stationary = kernel(_predict_stationary, **_FAST) or _predict_stationary
 _lattice = kernel(_lattice) or _lattice

@@ -67,23 +67,46 @@ def spared_numpy(feet, cand, az_cand, r_cand, z_cand, ground_z, rise_m, n_az, cl
 def _spared_loop(feet, cand, az_cand, r_cand, z_cand, ground_z, rise_m, n_az, clearance_m,
                  beyond_m):
     """:func:`spared_numpy` as loops (compiled with numba): the feet counted into their
-    azimuth cells with their ray bounds (:func:`_feet_by_cell`), then one pass over the
-    candidates, each tested against the feet of its cell only when it lies beyond the
-    nearest of them (a few percent of the candidates: feet are mostly far out)."""
+    azimuth cells with their ray bounds (:func:`_feet_by_cell`), the candidates that lie
+    beyond their cell's nearest foot counted into the cells too (:func:`_rays_by_cell`; a few
+    percent of them on a street scan: feet are mostly far out), then each foot tests its
+    cell's rays until one passes under its column (a dense cloud's feet stop early)."""
     out = feet.copy()
     start, owner, lo, hi, beyond, near = _feet_by_cell(feet, cand, az_cand, r_cand, z_cand,
                                                        ground_z, rise_m, n_az, clearance_m,
                                                        beyond_m)
-    for j in range(cand.size):
-        a = az_cand[j]
-        r = r_cand[j]
-        if not r > near[a]:
-            continue
-        z = np.float64(z_cand[j])
+    ray_start, ray_r, ray_z = _rays_by_cell(az_cand, r_cand, z_cand, near, n_az)
+    for a in range(n_az):
         for k in range(start[a], start[a + 1]):
-            if r > beyond[k] and z > lo[k] * r and z < hi[k] * r:
-                out[owner[k]] = False
+            if beyond[k] == np.inf:  # no ray can pass between the foot and its column
+                continue
+            for q in range(ray_start[a], ray_start[a + 1]):
+                r = ray_r[q]
+                if r > beyond[k] and ray_z[q] > lo[k] * r and ray_z[q] < hi[k] * r:
+                    out[owner[k]] = False
+                    break
     return out
+
+
+def _rays_by_cell(az_cand, r_cand, z_cand, near, n_az):
+    """The candidates beyond their cell's nearest foot (``near``), contiguous per azimuth cell
+    (cell a's from ray_start[a] to ray_start[a + 1]): their ranges and heights."""
+    ray_start = np.zeros(n_az + 1, dtype=np.int64)
+    for j in range(az_cand.size):
+        if r_cand[j] > near[az_cand[j]]:
+            ray_start[az_cand[j] + 1] += 1
+    for a in range(n_az):
+        ray_start[a + 1] += ray_start[a]
+    fill = ray_start[:n_az].copy()
+    ray_r = np.empty(ray_start[n_az])
+    ray_z = np.empty(ray_start[n_az])
+    for j in range(az_cand.size):
+        a = az_cand[j]
+        if r_cand[j] > near[a]:
+            ray_r[fill[a]] = r_cand[j]
+            ray_z[fill[a]] = np.float64(z_cand[j])
+            fill[a] += 1
+    return ray_start, ray_r, ray_z
 
 
 def _feet_by_cell(feet, cand, az_cand, r_cand, z_cand, ground_z, rise_m, n_az, clearance_m,
@@ -132,6 +155,7 @@ def _examples(dtype):
 
 
 _feet_by_cell = kernel(_feet_by_cell, inline='always') or _feet_by_cell
+_rays_by_cell = kernel(_rays_by_cell, inline='always') or _rays_by_cell
 FREE_SPACE = Twin('free space under structures', spared_numpy, kernel(_spared_loop), _examples)
 STAGE = Stage('free_space', 'ours', 'use_free_space_feet', (FREE_SPACE,))
 STAGES = (STAGE,)

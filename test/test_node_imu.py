@@ -5,7 +5,7 @@ A real labelled KITTI scan (SemanticKITTI 00/000000) is tilted by 10 degrees, as
 tilted base would see it, and published with the IMU samples that a tilted IMU would give: its
 orientation, or (orientation_covariance[0] == -1) only its acceleration, from an IMU mounted
 at 90 degrees of yaw to the LiDAR (imu_lidar_yaw_rad). The labels must be those of the level
-scan (>= 99.5 % of the points equal; without the IMU 95 % are). A stale or missing IMU falls
+scan (>= 99.5 % of the points equal; without the IMU about 97 % are). A stale or missing IMU falls
 back to the static pose (sensor_roll_rad/sensor_pitch_rad) without losing a frame, and
 diagnostics say WARN with the age.
 """

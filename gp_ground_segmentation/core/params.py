@@ -151,8 +151,8 @@ class SegmenterParams:
         0.9, 'slopes are clipped to this (< 1) so log(1/g) stays positive', 0.05, 0.999)
     density_in_flat_branch: bool = _param(
         False, 'also divide the flat-branch length scale log(1/g_d) by rho~ (continuous in g at '
-        'g_d); False is the paper\'s formula, which scored higher recall on most scenes in '
-        'benchmarks/sweep_params.py')
+        'g_d; acts on the paper\'s length factors only, use_nonstationary_length_scale); False '
+        'is the paper\'s formula')
     use_nonstationary_length_scale: bool = _param(
         False, 'paper (eqs. 8, 12): each candidate\'s length scale L_i = a d_i from its line\'s '
         'slope and rho~ (Paciorek\'s non-stationary kernel); false: one length factor, '

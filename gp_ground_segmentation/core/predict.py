@@ -18,6 +18,8 @@ from __future__ import annotations
 
 from typing import NamedTuple, Optional
 
+import math
+
 import numpy as np
 
 from .compiled import AVAILABLE, Stage, Twin, failed, kernel, mark_failed
@@ -137,6 +139,10 @@ def _predict_into(r, d, counts, alpha, r_star, d_star, sigma_f, gain, mean, k_st
     sf2 = sigma_f * sigma_f
     for s in range(s_count):
         m = counts[s]
+        if _one_length_scale(d, d_star, s, m) and _equally_spaced(r_star, s):
+            _predict_stationary(r, alpha, r_star, gain * d_star[s, 0], sf2, s, m, mean,
+                                k_star)
+            continue
         for c in range(k_count):
             l_star = gain * d_star[s, c]
             v = 0.0
@@ -146,6 +152,68 @@ def _predict_into(r, d, counts, alpha, r_star, d_star, sigma_f, gain, mean, k_st
                 k_star[s, j, c] = kj
                 v += kj * alpha[s, j]
             mean[s, c] = v
+
+
+def _one_length_scale(d, d_star, s, m):
+    """Whether segment s's m training points and its prediction points share one length
+    factor (the defaults' stationary kernel: use_nonstationary_length_scale off)."""
+    first = d_star[s, 0]
+    for c in range(d_star.shape[1]):
+        if d_star[s, c] != first:
+            return False
+    for j in range(m):
+        if d[s, j] != first:
+            return False
+    return True
+
+
+def _equally_spaced(r_star, s):
+    """Whether segment s's prediction points are at least two, increasing and equally spaced
+    (to 1e-9 of their span), as the bin edges are."""
+    k_count = r_star.shape[1]
+    if k_count < 2 or not r_star[s, k_count - 1] > r_star[s, 0]:
+        return False
+    step = (r_star[s, k_count - 1] - r_star[s, 0]) / (k_count - 1)
+    tolerance = 1e-9 * (r_star[s, k_count - 1] - r_star[s, 0])
+    for c in range(k_count):
+        if abs(r_star[s, c] - (r_star[s, 0] + c * step)) > tolerance:
+            return False
+    return True
+
+
+def _predict_stationary(r, alpha, r_star, length, sf2, s, m, mean, k_star):
+    """:func:`_predict_into` for one segment whose kernel is stationary (one length scale:
+    Paciorek's prefactor is 1) and whose k prediction points are equally spaced (the bin
+    edges): per training point the kernel at the edge nearest to it, then outwards in both
+    directions by a factor that itself shrinks by exp(-step^2 / L^2) per edge, so three exps
+    a training point instead of k; every factor is <= 1 (nothing overflows; far values
+    underflow to 0 as the direct formula's do)."""
+    k_count = r_star.shape[1]
+    step = (r_star[s, k_count - 1] - r_star[s, 0]) / (k_count - 1)
+    inv = 1.0 / (2.0 * length * length)
+    shrink = math.exp(-2.0 * step * step * inv)
+    for c in range(k_count):
+        mean[s, c] = 0.0
+    for j in range(m):
+        near = min(max(int(round((r[s, j] - r_star[s, 0]) / step)), 0), k_count - 1)
+        x = r_star[s, near] - r[s, j]
+        value = sf2 * math.exp(-x * x * inv)
+        up = math.exp(-(2.0 * x + step) * step * inv)  # k(c + 1) / k(c) at c = near
+        down = math.exp((2.0 * x - step) * step * inv)  # k(c - 1) / k(c) at c = near
+        a = alpha[s, j]
+        kc = value
+        for c in range(near, k_count):  # a point beyond the last edge only stores c = near
+            k_star[s, j, c] = kc
+            mean[s, c] += kc * a
+            if c + 1 < k_count:
+                kc *= up
+                up *= shrink
+        kc = value
+        for c in range(near - 1, -1, -1):  # none for a point before the first edge
+            kc *= down
+            down *= shrink
+            k_star[s, j, c] = kc
+            mean[s, c] += kc * a
 
 
 def _predict_numpy(r, d, counts, alpha, a_inv, r_star, d_star, sigma_f, gain, with_std):
@@ -233,6 +301,9 @@ def _std_numpy(counts, a_inv, k_star, sigma_f):
 
 
 if AVAILABLE:
+    _one_length_scale = kernel(_one_length_scale, inline='always')
+    _equally_spaced = kernel(_equally_spaced, inline='always')
+    _predict_stationary = kernel(_predict_stationary, inline='always')
     _predict_into = kernel(_predict_into)
     _std_into = kernel(_std_into)
 

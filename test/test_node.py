@@ -306,12 +306,16 @@ def test_bad_params_file_fails_at_startup_naming_the_key(tmp_path, body, words):
     path.write_text('ground_segmentation:\n  ros__parameters:\n' + body)
     ctx = rclpy.Context()
     rclpy.init(args=['--ros-args', '--params-file', str(path)], context=ctx)
+    # a node of its own keeps the context's DDS participant alive while the failing node is
+    # made and destroyed (test_node_params.py's context fixture says why)
+    keeper = rclpy.create_node('test_node_keeper', context=ctx, use_global_arguments=False)
     try:
         with pytest.raises(ParameterConfigError) as info:
             GroundSegmentationNode(context=ctx)
         for word in words:
             assert word in str(info.value)
     finally:
+        keeper.destroy_node()
         rclpy.try_shutdown(context=ctx)
 
 

@@ -237,10 +237,17 @@ def test_bad_params_file_load_params_file(tmp_path, label, body, words):
 
 @pytest.fixture(scope='module')
 def context():
+    # A node kept alive for the whole module keeps the context's DDS participant alive: rmw
+    # destroys the participant with a context's last node, and Fast DDS can deadlock destroying
+    # one whose discovery is still under way (a hang seen once in CI, in rcl_node_fini of a node
+    # that failed in its constructor a few ms after it was made).
     import rclpy
+    from rclpy.node import Node
     ctx = rclpy.Context()
     rclpy.init(context=ctx)
+    keeper = Node('test_node_params_keeper', context=ctx)
     yield ctx
+    keeper.destroy_node()
     rclpy.try_shutdown(context=ctx)
 
 

@@ -40,7 +40,7 @@ import numpy as np
 from .compiled import Stage, Twin, kernel
 from .labels import interpolate_at_points, is_ground, is_ground_compiled
 from .length_factors import factors_at_edges
-from .paciorek import paciorek_2d, paciorek_2d_compiled
+from .paciorek import paciorek_2d, paciorek_2d_compiled, stationary_along_compiled
 
 __all__ = ['border_azimuths', 'coupled_ground', 'coupled_labels']
 
@@ -177,6 +177,7 @@ def _borders_loop(x, y, candidate_index, candidate_z, d, training, edges, gain, 
     a = np.empty((n_max, n_max))
     alpha, px, py, pl = np.empty(n_max), np.empty(n_max), np.empty(n_max), np.empty(n_max)
     knot_l = np.empty(n_knots)
+    knot_row = np.empty(n_knots)  # one training point's kernel at the knots
     border = np.empty((m_count, n_knots))
     sf2 = sigma_f * sigma_f
     segment_xylz = np.empty((m_count, 4, n_count))
@@ -207,7 +208,7 @@ def _borders_loop(x, y, candidate_index, candidate_z, d, training, edges, gain, 
         c, s = math.cos(phi), math.sin(phi)
         if _one_length_scale(pl, n, knot_l) and _finite_spacing(edges, b):
             _predict_stationary(border, b, edges, px, py, alpha, n, c, s,
-                                2.0 * pl[0] * pl[0], sf2, mean)
+                                2.0 * pl[0] * pl[0], sf2, mean, knot_row)
             continue
         for k in range(n_knots):
             kx, ky = edges[b, k] * c, edges[b, k] * s
@@ -351,11 +352,11 @@ def _finite_spacing(edges, b):
     return w * w < 1e300
 
 
-def _predict_stationary(out, b, knot_r, px, py, alpha, n, c, s, s2, sf2, mean):
+def _predict_stationary(out, b, knot_r, px, py, alpha, n, c, s, s2, sf2, mean, row):
     """The posterior mean at border b's knots for one length scale (prefactor 1, s2 = 2 L^2):
     the knots are equally spaced along the border (r_k = r_0 + k w), so each training point's
-    exp(-|p_k - x_i|^2 / s2) follows from its value at the nearest knot by two ratios, one
-    constant (exp(-2 w^2 / s2)): three exps a training point instead of one a knot."""
+    exp(-|p_k - x_i|^2 / s2) comes by recurrence (``paciorek.stationary_along``, into the
+    scratch ``row``): three exps a training point instead of one a knot."""
     n_knots = knot_r.shape[1]
     r0 = knot_r[b, 0]
     w = (knot_r[b, n_knots - 1] - r0) / (n_knots - 1)
@@ -365,22 +366,9 @@ def _predict_stationary(out, b, knot_r, px, py, alpha, n, c, s, s2, sf2, mean):
     for i in range(n):
         t = px[i] * c + py[i] * s  # along the border
         h = py[i] * c - px[i] * s  # across it (no difference of squares: no inf - inf)
-        peak = int(min(max(round((t - r0) / w) if w > 0.0 else 0.0, 0.0), n_knots - 1.0))
-        u = r0 + peak * w - t
-        value = math.exp(-(u * u + h * h) / s2) * alpha[i]
-        if value == 0.0:  # 0 at its nearest knot: 0 at all of them (and no 0 * inf below)
-            continue
-        out[b, peak] += value
-        up, step = value, math.exp(-(2.0 * w * u + w * w) / s2)
-        for k in range(peak + 1, n_knots):  # farther out: the exponent falls by step / ratio
-            up *= step
-            out[b, k] += up
-            step *= ratio
-        down, step = value, math.exp((2.0 * w * u - w * w) / s2)
-        for k in range(peak - 1, -1, -1):
-            down *= step
-            out[b, k] += down
-            step *= ratio
+        if stationary_along_compiled(row, t, h * h, r0, w, ratio, s2, alpha[i]):
+            for k in range(n_knots):  # (False: 0 at every knot)
+                out[b, k] += row[k]
     for k in range(n_knots):
         out[b, k] = mean + sf2 * out[b, k]
 

@@ -19,9 +19,16 @@ for it.
 The same kernel in two dimensions (:func:`paciorek_2d`, ours: the coupled surface,
 coupled_surface.py) has an isotropic length scale L_i per point: Paciorek's prefactor
 |L_i^2 I|^(1/4) |L_j^2 I|^(1/4) |(L_i^2 + L_j^2) I / 2|^(-1/2) is then the 1-D one squared.
+
+With one length scale for every point the kernel is stationary (prefactor 1);
+:func:`stationary_along` evaluates it at equally spaced points by recurrence, for the
+per-segment prediction at the bin edges (predict.py) and the border GPs' knots
+(coupled_surface.py).
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
@@ -51,6 +58,35 @@ def paciorek_2d(dx, dy, l_i, l_j, sigma_f2):
     return sigma_f2 * (2.0 * l_i * l_j / s) * np.exp(-(dx * dx + dy * dy) / s)
 
 
+def stationary_along(row, t, h2, r0, w, ratio, s2, scale) -> bool:
+    """row[k] = scale exp(-((r0 + k w - t)^2 + h2) / s2) at the row.size equally spaced points
+    r0 + k w (w >= 0) of a line, for a point at t along it and sqrt(h2) off it; s2 = 2 L^2
+    (the stationary kernel, prefactor 1) and ratio = exp(-2 w^2 / s2). The value at the
+    nearest point, then outwards by one ratio per point that itself shrinks by ``ratio``: three
+    exps instead of row.size, every factor <= 1 towards the row's ends (far values underflow to
+    0 as the direct formula's do). Returns False, writing nothing, when the value at the
+    nearest point is 0 (then it is 0 at all of them)."""
+    n = row.size
+    peak = int(min(max(round((t - r0) / w) if w > 0.0 else 0.0, 0.0), n - 1.0))
+    u = r0 + peak * w - t
+    value = math.exp(-(u * u + h2) / s2) * scale
+    if value == 0.0:
+        return False
+    row[peak] = value
+    up, step = value, math.exp(-(2.0 * w * u + w * w) / s2)
+    for k in range(peak + 1, n):  # farther out: the exponent falls by step / ratio
+        up *= step
+        row[k] = up
+        step *= ratio
+    down, step = value, math.exp((2.0 * w * u - w * w) / s2)
+    for k in range(peak - 1, -1, -1):
+        down *= step
+        row[k] = down
+        step *= ratio
+    return True
+
+
 # inlined into their compiled callers (numba IR: no call per pair of points)
 paciorek_compiled = kernel(paciorek, inline='always') or paciorek  # numpy's without numba
 paciorek_2d_compiled = kernel(paciorek_2d, inline='always') or paciorek_2d
+stationary_along_compiled = kernel(stationary_along, inline='always') or stationary_along

@@ -24,7 +24,7 @@ import numpy as np
 
 from .compiled import AVAILABLE, Stage, Twin, failed, kernel, mark_failed
 from .length_factors import EDGES, factors_at_edges
-from .paciorek import paciorek, paciorek_compiled
+from .paciorek import paciorek, paciorek_compiled, stationary_along_compiled
 
 
 class GroundModel(NamedTuple):
@@ -184,36 +184,24 @@ def _equally_spaced(r_star, s):
 def _predict_stationary(r, alpha, r_star, length, sf2, s, m, mean, k_star):
     """:func:`_predict_into` for one segment whose kernel is stationary (one length scale:
     Paciorek's prefactor is 1) and whose k prediction points are equally spaced (the bin
-    edges): per training point the kernel at the edge nearest to it, then outwards in both
-    directions by a factor that itself shrinks by exp(-step^2 / L^2) per edge, so three exps
-    a training point instead of k; every factor is <= 1 (nothing overflows; far values
-    underflow to 0 as the direct formula's do)."""
+    edges): each training point's k* row by recurrence (``paciorek.stationary_along``), three
+    exps a training point instead of k."""
     k_count = r_star.shape[1]
-    step = (r_star[s, k_count - 1] - r_star[s, 0]) / (k_count - 1)
-    inv = 1.0 / (2.0 * length * length)
-    shrink = math.exp(-2.0 * step * step * inv)
+    r0 = r_star[s, 0]
+    w = (r_star[s, k_count - 1] - r0) / (k_count - 1)
+    s2 = 2.0 * length * length
+    ratio = math.exp(-2.0 * w * w / s2)
     for c in range(k_count):
         mean[s, c] = 0.0
     for j in range(m):
-        near = min(max(int(round((r[s, j] - r_star[s, 0]) / step)), 0), k_count - 1)
-        x = r_star[s, near] - r[s, j]
-        value = sf2 * math.exp(-x * x * inv)
-        up = math.exp(-(2.0 * x + step) * step * inv)  # k(c + 1) / k(c) at c = near
-        down = math.exp((2.0 * x - step) * step * inv)  # k(c - 1) / k(c) at c = near
+        row = k_star[s, j]
+        if not stationary_along_compiled(row, r[s, j], 0.0, r0, w, ratio, s2, sf2):
+            for c in range(k_count):  # 0 at its nearest edge: 0 at all of them
+                row[c] = 0.0
+            continue
         a = alpha[s, j]
-        kc = value
-        for c in range(near, k_count):  # a point beyond the last edge only stores c = near
-            k_star[s, j, c] = kc
-            mean[s, c] += kc * a
-            if c + 1 < k_count:
-                kc *= up
-                up *= shrink
-        kc = value
-        for c in range(near - 1, -1, -1):  # none for a point before the first edge
-            kc *= down
-            down *= shrink
-            k_star[s, j, c] = kc
-            mean[s, c] += kc * a
+        for c in range(k_count):
+            mean[s, c] += row[c] * a
 
 
 def _predict_numpy(r, d, counts, alpha, a_inv, r_star, d_star, sigma_f, gain, with_std):

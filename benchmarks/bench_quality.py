@@ -46,6 +46,7 @@ import dataclasses
 import itertools
 import sys
 import time
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -56,7 +57,7 @@ import common  # noqa: E402
 
 from gp_ground_segmentation import SegmenterParams  # noqa: E402
 from gp_ground_segmentation.tools.crossval import (  # noqa: E402
-    best_candidate, leave_one_group_out, pooled_f1)
+    best_candidate, group_folds, leave_one_group_out, pooled_f1)
 from gp_ground_segmentation.tools.evaluation import (  # noqa: E402
     DEFAULT_PROTOCOL, PATCHWORKPP, VEGETATION_NONGROUND)
 
@@ -547,11 +548,8 @@ def cv_table(cv_by_protocol: dict, candidates: dict) -> str:
 
 
 def _choice_counts(choices) -> str:
-    counts = {}
-    for choice in choices:
-        counts[choice] = counts.get(choice, 0) + 1
-    return ', '.join(f'{name} ({count})' for name, count in
-                     sorted(counts.items(), key=lambda kv: -kv[1]))
+    """'name (folds), ...', the most chosen first (ties in the order first chosen)."""
+    return ', '.join(f'{name} ({count})' for name, count in Counter(choices).most_common())
 
 
 def joint_cv_cells(candidates: dict) -> list:
@@ -563,11 +561,10 @@ def joint_cv_cells(candidates: dict) -> list:
         return float(np.mean([pooled_f1(candidates[name][group][p.name]) for p in PROTOCOLS]))
 
     first = next(iter(candidates))
-    group_names = list(candidates[first])
     choices, held, base = [], [], []
-    for g in group_names:
-        rest = [h for h in group_names if h != g]
-        best = max(candidates, key=lambda n: np.mean([score(n, h) for h in rest]))
+    for fold in group_folds(list(candidates[first]), lambda group: group):
+        (g,) = fold.test
+        best = max(candidates, key=lambda n: np.mean([score(n, h) for h in fold.train]))
         choices.append(best)
         held.append(score(best, g))
         base.append(score(first, g))
